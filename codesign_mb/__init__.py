@@ -1,0 +1,1 @@
+"""codesign_mb."""

@@ -1,0 +1,47 @@
+"""QoS requests and their cost: the reliability ``q`` and latency ``tau`` of paper.tex sec. 3."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+
+__all__ = ["QosCost", "QosRequest", "reliability_cost"]
+
+
+@dataclass(frozen=True, slots=True)
+class QosRequest:
+    """The QoS one state packet is sent with.
+
+    Parameters
+    ----------
+    reliability:
+        Delivery probability ``q`` in [0, 1] (``eq_d``); 0 means "do not send".
+    latency_steps:
+        Delivery latency ``tau`` in control steps (>= 0); the packet stamped ``t`` arrives at
+        ``t + tau`` when delivered (``eq_time``).
+    """
+
+    reliability: float
+    latency_steps: int = 0
+
+    def __post_init__(self) -> None:
+        q = float(self.reliability)
+        if not (math.isfinite(q) and 0.0 <= q <= 1.0):
+            raise ValueError(f"reliability must be in [0, 1], got {self.reliability!r}")
+        object.__setattr__(self, "reliability", q)
+        tau = self.latency_steps
+        if isinstance(tau, bool) or int(tau) != tau:
+            raise ValueError(f"latency_steps must be an integer, got {tau!r}")
+        if tau < 0:
+            raise ValueError(f"latency_steps must be >= 0, got {tau!r}")
+        object.__setattr__(self, "latency_steps", int(tau))
+
+
+QosCost = Callable[[QosRequest], float]
+"""The network cost ``C(q, tau)`` of serving one request (paper sec. 3)."""
+
+
+def reliability_cost(qos: QosRequest) -> float:
+    """The paper's cost ``C(q) = q`` (``eq_robot``): requested reliability, latency free."""
+    return qos.reliability
