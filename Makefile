@@ -3,10 +3,22 @@ PYTHON ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
-export MUJOCO_GL ?= egl
+# Headless MuJoCo rendering through OSMesa (Debian libosmesa6); render tests skip without it.
+export MUJOCO_GL ?= osmesa
 export PYOPENGL_PLATFORM ?= $(MUJOCO_GL)
 
-.PHONY: install demo test test-slow lint format bench clean
+.PHONY: install sysdeps demo test test-slow lint format bench clean
+
+# Best effort: OSMesa for headless rendering, when we may install Debian packages.
+sysdeps:
+	@if ! ldconfig -p 2>/dev/null | grep -q libOSMesa; then \
+	  if [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null; then \
+	    (DEBIAN_FRONTEND=noninteractive apt-get install -y -q libosmesa6 >/dev/null 2>&1 || \
+	     (apt-get update -q >/dev/null 2>&1 && \
+	      DEBIAN_FRONTEND=noninteractive apt-get install -y -q libosmesa6 >/dev/null 2>&1)) || \
+	    echo "note: libosmesa6 not installed; rendering tests will be skipped"; \
+	  else echo "note: install libosmesa6 for headless rendering"; fi; \
+	fi
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -16,7 +28,7 @@ $(STAMP): pyproject.toml
 	$(BIN)/python -m pip install --quiet -e '.[test]'
 	touch $(STAMP)
 
-install: $(STAMP)
+install: sysdeps $(STAMP)
 
 demo: install
 	$(BIN)/codesign demo

@@ -1,0 +1,66 @@
+"""``codesign solve``: the whole-horizon allocation LP of a traffic trace, offline."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, Any
+
+import typer
+
+from codesign_mb.cli.common import JsonOption, cli_errors, emit
+
+__all__ = ["register"]
+
+
+def register(app: typer.Typer) -> None:
+    """Add ``codesign solve`` to ``app``."""
+
+    @app.command()
+    @cli_errors
+    def solve(
+        instance: Annotated[
+            Path,
+            typer.Argument(
+                help="Instance file (JSON trace, format in solvers/README.md).", dir_okay=False
+            ),
+        ],
+        solver: Annotated[
+            str, typer.Option("--solver", "-s", help="LP solver: highs, clarabel or osqp.")
+        ] = "highs",
+        compare: Annotated[
+            bool,
+            typer.Option(
+                "--compare/--no-compare",
+                help="Also replay the greedy and convex allocators on the trace (gap to optimum).",
+            ),
+        ] = False,
+        as_json: JsonOption = False,
+    ) -> None:
+        """Solve the offline allocation LP: the most frames any scheduler delivers in time.
+
+        Prints the optimum (frames, fractional), the solver and its solve time in seconds.
+        """
+        from codesign_mb.wifi.offline import offline_optimum
+        from codesign_mb.wifi.sim import Trace, replay
+
+        trace = Trace.load(instance)
+        result = offline_optimum(trace, solver=solver)
+        record: dict[str, Any] = {
+            "instance": str(instance),
+            "optimum_frames": result.optimum,
+            "solver": result.solver,
+            "solve_time_s": result.solve_time_s,
+            "status": result.status,
+            "frames_admitted": result.n_frames_admitted,
+            "frames_deliverable": result.n_frames,
+            "variables": result.n_variables,
+            "constraints": result.n_constraints,
+        }
+        if compare:
+            for name in ("greedy", "convex"):
+                delivered = replay(trace, name).delivered
+                record[f"{name}_frames"] = delivered
+                record[f"{name}_gap"] = (
+                    (result.optimum - delivered) / result.optimum if result.optimum > 0 else 0.0
+                )
+        emit(record, as_json=as_json, title="offline allocation LP")

@@ -1,0 +1,180 @@
+"""``codesign wifi``: the 802.11ax rate table, traces for the allocation LP, and Fig. 6 capacity."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, Any
+
+import typer
+
+from codesign_mb.cli.common import (
+    ConfigOption,
+    JsonOption,
+    SeedOption,
+    cli_errors,
+    emit,
+    explicit,
+    load_config,
+    note,
+    track,
+)
+
+__all__ = ["register"]
+
+
+def _parse_robots(text: str) -> tuple[int, ...]:
+    """``"1..8"``, ``"1,2,4,8"`` or ``"6"`` -> robot counts."""
+    text = text.strip()
+    try:
+        if ".." in text:
+            lo, hi = (int(x) for x in text.split("..", 1))
+            if lo > hi:
+                raise ValueError
+            return tuple(range(lo, hi + 1))
+        return tuple(int(x) for x in text.split(",") if x.strip())
+    except ValueError:
+        raise ValueError(f"robots must look like 1..8 or 1,2,4, got {text!r}") from None
+
+
+def register(app: typer.Typer) -> None:
+    """Add ``codesign wifi ...`` to ``app``."""
+    wifi = typer.Typer(
+        help="WiFi 6 OFDMA cell: PHY rates, allocation traces, capacity (Fig. 6).",
+        no_args_is_help=True,
+    )
+    app.add_typer(wifi, name="wifi")
+
+    @wifi.command("phy-table")
+    @cli_errors
+    def phy_table(
+        bandwidth: Annotated[
+            int, typer.Option("--bandwidth", "-b", help="Channel width in MHz: 20, 40 or 80.")
+        ] = 40,
+        gi: Annotated[
+            float, typer.Option("--gi", help="Guard interval in us: 0.8, 1.6 or 3.2.")
+        ] = 0.8,
+        streams: Annotated[int, typer.Option("--streams", help="Spatial streams: 1 or 2.")] = 1,
+        as_json: JsonOption = False,
+    ) -> None:
+        """802.11ax data rate (Mb/s) of every RU size and MCS 0-11 of the channel."""
+        from codesign_mb.wifi.phy import PhyConfig
+
+        phy = PhyConfig(bandwidth_mhz=bandwidth, guard_interval_us=gi, spatial_streams=streams)
+        emit(phy.rate_table(), as_json=as_json, title=f"802.11ax rates, {bandwidth} MHz, Mb/s")
+
+    @wifi.command("trace")
+    @cli_errors
+    def trace(
+        out: Annotated[Path, typer.Argument(help="Instance file to write (JSON).", dir_okay=False)],
+        robots: Annotated[int, typer.Option("--robots", "-n", help="Number of robots.")] = 6,
+        steps: Annotated[int, typer.Option("--steps", help="Control steps (40 ms each).")] = 10,
+        reliability: Annotated[
+            float, typer.Option("--reliability", "-q", help="Requested reliability q in [0, 1].")
+        ] = 1.0,
+        latency: Annotated[
+            int, typer.Option("--latency", help="Latency request tau in steps (>= 1).")
+        ] = 1,
+        channel: Annotated[
+            str, typer.Option("--channel", help="Cell preset: paper or better.")
+        ] = "paper",
+        seed: SeedOption = 0,
+    ) -> None:
+        """Record a static-QoS traffic trace as an instance for ``codesign solve``."""
+        from codesign_mb.wifi.capacity import CHANNEL_PRESETS
+        from codesign_mb.wifi.cell import generate_trace
+
+        if channel not in CHANNEL_PRESETS:
+            raise ValueError(f"channel must be one of {sorted(CHANNEL_PRESETS)}, got {channel!r}")
+        if steps < 1 or robots < 1:
+            raise ValueError(f"steps and robots must be >= 1, got {steps} and {robots}")
+        t = generate_trace(
+            CHANNEL_PRESETS[channel],
+            robots,
+            steps=steps,
+            reliability=reliability,
+            latency_steps=latency,
+            seed=seed,
+        )
+        out.parent.mkdir(parents=True, exist_ok=True)
+        t.save(out)
+        note(f"wrote {out} ({len(t.frames)} frames, {t.horizon_ticks} ticks)")
+
+    @wifi.command("capacity")
+    @cli_errors
+    def capacity(
+        ctx: typer.Context,
+        robots: Annotated[
+            str, typer.Option("--robots", help="Robot counts: 1..8 or 1,2,4,8.")
+        ] = "1,2,4,6,8,10",
+        channels: Annotated[
+            str, typer.Option("--channels", help="Cell presets, comma separated: paper,better.")
+        ] = "paper,better",
+        schedulers: Annotated[
+            str, typer.Option("--schedulers", help="Allocators, comma separated: greedy,convex.")
+        ] = "greedy,convex",
+        trials: Annotated[int, typer.Option("--trials", help="Episodes per point.")] = 4,
+        max_steps: Annotated[
+            int | None, typer.Option("--max-steps", help="Episode cap in steps (40 ms).")
+        ] = None,
+        out: Annotated[
+            Path | None,
+            typer.Option(
+                "--out", "-o", help="Results folder (table, config, figure).", file_okay=False
+            ),
+        ] = None,
+        config: ConfigOption = None,
+        seed: SeedOption = 0,
+        as_json: JsonOption = False,
+    ) -> None:
+        """Task success vs number of robots on one channel (Fig. 6), per pipeline x scheduler.
+
+        The pipelines (plant, controller, estimator, QoS policy) come from the config file's
+        ``pipelines`` and ``plant`` tables; the defaults run the kinematic toy conveyor with a
+        static QoS (q = 1) and an age-triggered QoS rule.
+        """
+        from codesign_mb.wifi.capacity import CapacityConfig, capacity_table, run_capacity
+
+        overrides: dict[str, Any] = explicit(
+            ctx,
+            {
+                "robots": robots,
+                "channels": channels,
+                "schedulers": schedulers,
+                "trials": trials,
+                "max_steps": max_steps,
+                "seed": seed,
+            },
+        )
+        for key in ("channels", "schedulers"):
+            if key in overrides:
+                overrides[key] = [s.strip() for s in str(overrides[key]).split(",") if s.strip()]
+        if "robots" in overrides:
+            overrides["robots"] = list(_parse_robots(str(overrides["robots"])))
+        cfg = load_config(CapacityConfig, config, overrides, section="capacity")
+        n_points = (
+            len(cfg.channels)
+            * len(cfg.schedulers)
+            * len(cfg.pipelines)
+            * len(cfg.robots)
+            * cfg.trials
+        )
+        results = run_capacity(
+            cfg,
+            progress=lambda pts: track(
+                pts, total=n_points, description="capacity", disable=as_json
+            ),
+        )
+        table = capacity_table(results, success_target=cfg.success_target)
+        if out is not None:
+            from codesign_mb.config import to_mapping
+            from codesign_mb.evaluation.results import write_results
+
+            write_results(
+                out,
+                table=results,
+                config=to_mapping(cfg),
+                name="wifi_capacity",
+                extra={"curves": table.to_dict("records")},
+            )
+            note(f"results written to {out}")
+        emit(table, as_json=as_json, title="task success vs robots (fig_wifi)")

@@ -1,0 +1,450 @@
+"""N robots on one WiFi 6 channel: the shared cell, its per-station ``Link``s, lockstep rollouts.
+
+Lockstep
+--------
+Robot ``i`` captures its step-``t`` camera frame at tick ``c_i(t) = t * P + o_i`` (``P`` = 40
+ticks, ``o_i`` its capture offset) and reads its step-``t`` observation at the same instant,
+so a state is delivered with latency ``tau`` iff both its frames arrive by ``c_i(t + tau)``
+(``eq_deadline``). :meth:`WifiLink.step` advances the shared channel *lazily* to ``c_i(t)``:
+that needs every frame captured before then, i.e. every other robot ``j`` must already have
+submitted its step whose capture precedes ``c_i(t)``. Stepping the robots round-robin in
+order of their offsets (:attr:`SharedChannel.step_order`) guarantees it, and
+:func:`rollout_shared` does exactly that; a robot that runs ahead raises ``RuntimeError``.
+Because a camera frame needs airtime, ``tau = 0`` cannot be met on this link and is rejected.
+
+Channel process
+---------------
+Distances are drawn once per episode, Rician block-fading gains once per coherence block per
+station (the same for UL and DL), then link adaptation picks each hop's MCS (``choose_mcs``).
+A frame's fate on each hop is drawn when it is admitted, with that hop's delivery probability.
+"""
+
+from __future__ import annotations
+
+from collections import defaultdict
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import pandas as pd
+from numpy.typing import ArrayLike, NDArray
+
+from codesign_mb.network.link import ObservationBuffer, Packet, Reception
+from codesign_mb.network.qos import QosRequest
+from codesign_mb.wifi.config import WifiConfig, make_allocator
+from codesign_mb.wifi.sim import ChannelEngine, Frame, Trace
+from codesign_mb.wifi.traffic import drop_probability
+
+__all__ = [
+    "ChannelProcess",
+    "SharedChannel",
+    "WifiLink",
+    "generate_trace",
+    "rollout_shared",
+]
+
+
+class ChannelProcess:
+    """Seeded per-station SNR, MCS and delivery probability over time (``eq_snr``, ``eq_per``)."""
+
+    def __init__(self, config: WifiConfig, n_stations: int, rng: np.random.Generator) -> None:
+        self.config = config
+        self.n = n_stations
+        ch = config.channel
+        place_rng, self._fade_rng = rng.spawn(2)
+        self.distances_m = ch.place(n_stations, place_rng)
+        self.block_ticks = max(1, round(ch.coherence_ms * 1000.0 / config.mac.tick_us))
+        mac, traffic = config.mac, config.traffic
+        self.ul_bytes = mac.psdu_bits(traffic.ul_frame_bytes) / 8
+        self.dl_bytes = mac.psdu_bits(traffic.dl_frame_bytes) / 8
+        self._block = -1
+        self.ul_snr_db = self.dl_snr_db = np.zeros(n_stations)
+        self.ul_mcs = self.dl_mcs = np.zeros(n_stations, dtype=np.int64)
+        self.ul_pdr = self.dl_pdr = np.zeros(n_stations)
+        self.ul_bpss = self.dl_bpss = np.zeros(n_stations)
+
+    def at(self, tick: int) -> None:
+        """Make the state current for ``tick`` (draws a new block when one starts)."""
+        block = tick // self.block_ticks
+        while self._block < block:
+            self._block += 1
+            self._draw()
+
+    def _draw(self) -> None:
+        ch, phy = self.config.channel, self.config.phy
+        gain = ch.fading_gain((self.n,), self._fade_rng)
+        bw = phy.bandwidth_mhz
+        self.ul_snr_db = ch.snr_db(self.distances_m, gain, bw, uplink=True)
+        self.dl_snr_db = ch.snr_db(self.distances_m, gain, bw, uplink=False)
+        self.ul_mcs, self.ul_pdr = ch.adapt(self.ul_snr_db, self.ul_bytes)
+        self.dl_mcs, self.dl_pdr = ch.adapt(self.dl_snr_db, self.dl_bytes)
+        self.ul_bpss = phy.bits_per_subcarrier_symbol(self.ul_mcs)
+        self.dl_bpss = phy.bits_per_subcarrier_symbol(self.dl_mcs)
+
+
+class _TraceRecorder:
+    def __init__(self) -> None:
+        self.ul: list[NDArray] = []
+        self.dl: list[NDArray] = []
+        self.frames: list[tuple[int, ...]] = []
+
+    def trace(self, config: WifiConfig, n: int) -> Trace:
+        cols = Trace.COLUMNS
+        table = (
+            pd.DataFrame(self.frames, columns=list(cols))
+            if self.frames
+            else pd.DataFrame({c: np.zeros(0, dtype=np.int64) for c in cols})
+        )
+        horizon = len(self.ul)
+        return Trace(
+            config=config,
+            horizon_ticks=horizon,
+            ul_bpss=np.stack(self.ul, axis=1) if horizon else np.zeros((n, 0)),
+            dl_bpss=np.stack(self.dl, axis=1) if horizon else np.zeros((n, 0)),
+            frames=table,
+        )
+
+
+@dataclass
+class _Station:
+    t: int = 0
+    active: bool = True
+    rng: np.random.Generator | None = None
+    buffer: ObservationBuffer | None = None
+    requested: float = 0.0
+    admitted: int = 0
+    steps: int = 0
+
+
+class SharedChannel:
+    """One WiFi 6 cell shared by ``n_stations`` robots; :attr:`links` are their ``Link``s.
+
+    Parameters
+    ----------
+    config:
+        The cell; ``config.scheduler`` picks the allocator unless ``scheduler`` is given.
+    n_stations:
+        Number of robots.
+    seed:
+        Seed of the channel (placement, fading, frame fates) and the default seeds of the
+        stations' frame-dropping streams; :meth:`reset` may replace it.
+    scheduler:
+        Overrides ``config.scheduler``.
+
+    Examples
+    --------
+    >>> ch = SharedChannel(WifiConfig(), 2, seed=0)
+    >>> ch.reset(seed=0)
+    >>> for link in ch.links:
+    ...     link.reset(prior=[0.0])
+    >>> rx = [ch.links[i].step([1.0], QosRequest(1.0, 1)) for i in ch.step_order]
+    >>> [r.age for r in rx]
+    [1, 1]
+    """
+
+    def __init__(
+        self,
+        config: WifiConfig,
+        n_stations: int,
+        *,
+        seed: int | None = None,
+        scheduler: str | None = None,
+    ) -> None:
+        if isinstance(n_stations, bool) or not isinstance(n_stations, int) or n_stations < 1:
+            raise ValueError(f"n_stations must be an integer >= 1, got {n_stations!r}")
+        self.config = config
+        self.n = n_stations
+        self.scheduler = scheduler or config.scheduler
+        self.seed = seed
+        tick_us = config.mac.tick_us
+        self.period_ticks = config.traffic.period_ticks(tick_us)
+        self.offsets = config.traffic.offsets_ticks(n_stations, tick_us)
+        self.step_order: tuple[int, ...] = tuple(
+            int(i) for i in np.lexsort((np.arange(n_stations), self.offsets))
+        )
+        self.ul_bits = config.mac.psdu_bits(config.traffic.ul_frame_bytes)
+        self.dl_bits = config.mac.psdu_bits(config.traffic.dl_frame_bytes)
+        self.links: tuple[WifiLink, ...] = tuple(WifiLink(self, i) for i in range(n_stations))
+        self._stations = [_Station() for _ in range(n_stations)]
+        self.reset(seed=seed)
+
+    # ------------------------------------------------------------------ episodes
+    def reset(self, *, seed: int | None = None) -> None:
+        """Start an episode: empty queues, tick 0, new placement and fading from ``seed``."""
+        if seed is not None:
+            self.seed = seed
+        root = np.random.SeedSequence(self.seed)
+        chan_ss, fate_ss, drop_ss = root.spawn(3)
+        self.process = ChannelProcess(self.config, self.n, np.random.default_rng(chan_ss))
+        self._fate_rng = np.random.default_rng(fate_ss)
+        self._drop_seeds = drop_ss.spawn(self.n)
+        self.engine = ChannelEngine(
+            self.config,
+            self.n,
+            make_allocator(self.config, self.n, self.scheduler),
+            make_allocator(self.config, self.n, self.scheduler),
+        )
+        self._recorder = _TraceRecorder()
+        for i, st in enumerate(self._stations):
+            st.t, st.active, st.requested, st.admitted, st.steps = 0, True, 0.0, 0, 0
+            st.rng = np.random.default_rng(self._drop_seeds[i])
+            st.buffer = ObservationBuffer()
+        self._frames: list[Frame] = []
+
+    @property
+    def started(self) -> bool:
+        """Whether any station has stepped in this episode."""
+        return self.engine.tick > 0 or any(s.t > 0 for s in self._stations)
+
+    def capture_tick(self, station: int, step: int) -> int:
+        """``c_i(t)``: the tick robot ``station`` captures (and reads) step ``step``."""
+        return step * self.period_ticks + int(self.offsets[station])
+
+    # ------------------------------------------------------------------ time
+    def _advance_to(self, tick: int, station: int) -> None:
+        for j, st in enumerate(self._stations):
+            if j != station and st.active and self.capture_tick(j, st.t) < tick:
+                raise RuntimeError(
+                    f"lockstep violated: station {station} reached tick {tick} while station "
+                    f"{j} has not sent its step {st.t} (captured at tick "
+                    f"{self.capture_tick(j, st.t)}); step the robots in channel.step_order"
+                )
+        engine, process = self.engine, self.process
+        while engine.tick < tick:
+            process.at(engine.tick)
+            self._recorder.ul.append(process.ul_bpss.copy())
+            self._recorder.dl.append(process.dl_bpss.copy())
+            engine.run_tick(process.ul_bpss, process.dl_bpss)
+
+    def _submit(self, station: int, value: NDArray, qos: QosRequest) -> Reception:
+        st = self._stations[station]
+        if not st.active:
+            raise RuntimeError(f"station {station} was closed; reset it first")
+        if qos.latency_steps < 1:
+            raise ValueError(
+                "latency_steps must be >= 1 on a WiFi link (the camera and state frames need "
+                f"airtime), got {qos.latency_steps}"
+            )
+        t = st.t
+        cap = self.capture_tick(station, t)
+        self._advance_to(cap, station)
+        self.process.at(cap)
+        # eq_drop: one uniform per step whatever q is, so streams align across QoS policies.
+        u = st.rng.random()
+        admitted = qos.reliability > 0 and u >= drop_probability(
+            qos.reliability, self.config.channel.q0
+        )
+        fate = self._fate_rng.random(2)  # drawn for every step, admitted or not
+        st.requested += qos.reliability
+        st.steps += 1
+        if admitted:
+            deadline = cap + qos.latency_steps * self.period_ticks  # eq_deadline
+            ul_ok = bool(fate[0] < self.process.ul_pdr[station])
+            dl_ok = bool(fate[1] < self.process.dl_pdr[station])
+            frame = Frame(
+                station, t, cap, deadline, self.ul_bits, self.dl_bits, ul_ok, dl_ok, value
+            )
+            self.engine.add(frame)
+            self._frames.append(frame)
+            self._recorder.frames.append(
+                (station, t, cap, deadline, self.ul_bits, self.dl_bits, int(ul_ok), int(dl_ok))
+            )
+            st.admitted += 1
+        buffer = st.buffer
+        assert buffer is not None
+        arrived = self.engine.delivered[station]
+        for frame in arrived:
+            buffer.push(Packet(frame.step, frame.value), t)
+        arrived.clear()
+        st.t = t + 1
+        return buffer.receive(t, delivered=admitted, like=value)
+
+    def close(self, station: int) -> None:
+        """The robot of ``station`` left (episode over): drop its queue, stop waiting for it."""
+        self._stations[station].active = False
+        self.engine.drop_station(station)
+
+    # ------------------------------------------------------------------ results
+    def summary(self) -> pd.DataFrame:
+        """Per station: frames admitted/delivered/late/lost, latency, RU airtime, mean q."""
+        table = self.engine.summary()
+        table["steps"] = [s.steps for s in self._stations]
+        table["mean_reliability"] = [
+            s.requested / s.steps if s.steps else np.nan for s in self._stations
+        ]
+        table["distance_m"] = self.process.distances_m
+        table["offset_ticks"] = self.offsets
+        return table
+
+    def trace(self) -> Trace:
+        """The episode so far as a :class:`Trace` (admitted frames and channel per tick)."""
+        return self._recorder.trace(self.config, self.n)
+
+
+class WifiLink:
+    """Station ``index`` of a :class:`SharedChannel`, as a :class:`codesign_mb.network.Link`.
+
+    :meth:`step` sends ``x_t`` as a camera frame (dropped before the queue with probability
+    ``1 - q/q0``, ``eq_drop``) with deadline ``tau`` steps, advances the shared channel to
+    this robot's step ``t`` and returns what has arrived. ``Reception.delivered`` is whether
+    the frame was admitted to the queue: whether it arrives in time is known only later.
+    """
+
+    def __init__(self, channel: SharedChannel, index: int) -> None:
+        self.channel = channel
+        self.index = index
+
+    @classmethod
+    def single(cls, config: WifiConfig | None = None, *, seed: int | None = None) -> WifiLink:
+        """A link alone on its own channel (one robot)."""
+        return SharedChannel(config or WifiConfig(), 1, seed=seed).links[0]
+
+    def reset(self, *, seed: int | None = None, prior: ArrayLike | None = None) -> None:
+        """Start this robot's episode; restarts the channel if this robot had already stepped.
+
+        With a ``seed``, the station's frame-dropping stream is re-seeded with it, and so is the
+        channel of a single-station cell: a single-robot episode is reproducible from its seed.
+        """
+        ch = self.channel
+        st = ch._stations[self.index]
+        if st.t > 0 or (ch.n == 1 and seed is not None):
+            ch.reset(seed=seed)  # this robot starts a new episode: so does the channel
+        st.t, st.active, st.requested, st.admitted, st.steps = 0, True, 0.0, 0, 0
+        if seed is not None:
+            st.rng = np.random.default_rng(seed)
+        st.buffer = ObservationBuffer(prior)
+
+    def step(self, state: ArrayLike, qos: QosRequest) -> Reception:
+        value = np.array(state, dtype=float)
+        return self.channel._submit(self.index, value, qos)
+
+    def close(self) -> None:
+        """This robot's episode is over; the others go on without waiting for it."""
+        self.channel.close(self.index)
+
+
+# --------------------------------------------------------------------------- drivers
+
+
+def generate_trace(
+    config: WifiConfig,
+    n_stations: int,
+    *,
+    steps: int,
+    reliability: float | Sequence[float] = 1.0,
+    latency_steps: int = 1,
+    seed: int = 0,
+) -> Trace:
+    """A trace of ``steps`` control steps of static-QoS traffic (no robots), for the allocators.
+
+    Every robot requests ``reliability`` (one value or one per station) and ``latency_steps``;
+    frames are admitted by ``eq_drop`` and the channel runs ``latency_steps`` steps past the
+    last capture so every deadline falls inside the horizon.
+    """
+    q = np.broadcast_to(np.asarray(reliability, dtype=float), (n_stations,))
+    channel = SharedChannel(config, n_stations, seed=seed, scheduler="greedy")
+    for link in channel.links:
+        link.reset(prior=np.zeros(1))
+    engine_free = _NullEngine()
+    channel.engine = engine_free  # traffic only: no allocation needed to record a trace
+    for _ in range(steps):
+        for i in channel.step_order:
+            channel._submit(i, np.zeros(1), QosRequest(float(q[i]), latency_steps))
+    for i in range(n_stations):
+        channel.close(i)
+    channel._advance_to(steps * channel.period_ticks + latency_steps * channel.period_ticks, -1)
+    return channel.trace()
+
+
+class _NullEngine:
+    """Stands in for :class:`ChannelEngine` when only the traffic and the channel are wanted."""
+
+    def __init__(self) -> None:
+        self.tick = 0
+        self.delivered: defaultdict[int, list[Frame]] = defaultdict(list)
+
+    def add(self, frame: Frame) -> None:
+        return None
+
+    def run_tick(self, ul: NDArray, dl: NDArray) -> None:
+        self.tick += 1
+
+    def drop_station(self, station: int) -> None:
+        return None
+
+
+def rollout_shared(
+    envs: Sequence[Any],
+    estimators: Sequence[Any],
+    controllers: Sequence[Any],
+    *,
+    channel: SharedChannel,
+    seed: int,
+    max_steps: int | None = None,
+) -> list[pd.DataFrame]:
+    """Run N robots in lockstep on one channel; one per-step table per robot (like ``rollout``).
+
+    ``envs[i]`` must be a :class:`~codesign_mb.network.LinkObservationWrapper` around robot
+    ``i``'s plant whose link is ``channel.links[i]``. Robots are stepped in
+    ``channel.step_order``; a robot whose episode ends leaves the channel.
+
+    Seeds: the channel is reset with ``seed``; robot ``i`` gets the ``i``-th stream spawned
+    from it (env, link drops and QoS policy, via the wrapper; controller).
+    """
+    n = channel.n
+    if not (len(envs) == len(estimators) == len(controllers) == n):
+        raise ValueError(
+            f"need one env, estimator and controller per station ({n}), got "
+            f"{len(envs)}, {len(estimators)}, {len(controllers)}"
+        )
+    for i, env in enumerate(envs):
+        if getattr(env, "link", None) is not channel.links[i]:
+            raise ValueError(f"envs[{i}] must be wrapped with channel.links[{i}]")
+    root = np.random.SeedSequence(seed)
+    chan_ss, *robot_ss = root.spawn(n + 1)
+    channel.reset(seed=int(chan_ss.generate_state(1)[0]))
+    seeds = [int(s.generate_state(1)[0]) for s in robot_ss]
+    obs: list[Any] = [None] * n
+    info: list[dict[str, Any]] = [{}] * n
+    estimate: list[Any] = [None] * n
+    for i in channel.step_order:
+        obs[i], info[i] = envs[i].reset(seed=seeds[i])
+        controllers[i].reset(seed=seeds[i])
+        estimate[i] = estimators[i].reset(obs[i])
+    rows: list[list[dict[str, Any]]] = [[] for _ in range(n)]
+    done = [False] * n
+    recorded = ("qos_reliability", "qos_latency_steps", "qos_cost", "delivered", "age")
+    t = 0
+    while not all(done) and (max_steps is None or t < max_steps):
+        for i in channel.step_order:
+            if done[i]:
+                continue
+            env = envs[i]
+            action = np.asarray(controllers[i].act(estimate[i]))
+            row: dict[str, Any] = {"t": t, "robot": i}
+            row.update({k: info[i][k] for k in recorded})
+            remote = env.remote_slice
+            row["estimation_error"] = float(
+                np.linalg.norm(np.asarray(estimate[i])[remote] - info[i]["remote_true"])
+            )
+            obs[i], reward, terminated, truncated, info[i] = env.step(action)
+            row["reward"] = float(reward)
+            row.update(
+                {
+                    k: v
+                    for k, v in info[i].items()
+                    if k not in row
+                    and k not in recorded
+                    and np.ndim(v) == 0
+                    and not isinstance(v, str)
+                }
+            )
+            rows[i].append(row)
+            if terminated or truncated:
+                done[i] = True
+                channel.close(i)
+            else:
+                estimate[i] = estimators[i].estimate(obs[i], action)
+        t += 1
+    return [pd.DataFrame(r) for r in rows]

@@ -1,0 +1,61 @@
+"""The WiFi 6 network as one typed config, and the allocator factory."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from codesign_mb.wifi.allocators import (
+    Allocator,
+    ConvexAllocator,
+    ConvexAllocatorConfig,
+    GreedyEdfAllocator,
+)
+from codesign_mb.wifi.channel import ChannelConfig
+from codesign_mb.wifi.phy import MacTiming, PhyConfig
+from codesign_mb.wifi.traffic import TrafficConfig
+
+__all__ = ["SCHEDULERS", "WifiConfig", "make_allocator"]
+
+SCHEDULERS = ("greedy", "convex", "convex-cvxpy")
+
+
+@dataclass(frozen=True)
+class WifiConfig:
+    """A WiFi 6 OFDMA cell serving robots: PHY, MAC overheads, channel, traffic, scheduler.
+
+    Parameters
+    ----------
+    phy, mac, channel, traffic:
+        See :class:`PhyConfig`, :class:`MacTiming`, :class:`ChannelConfig`,
+        :class:`TrafficConfig`.
+    scheduler:
+        ``"greedy"`` (:class:`GreedyEdfAllocator`), ``"convex"`` (:class:`ConvexAllocator`,
+        OSQP hot path) or ``"convex-cvxpy"`` (the same model solved through cvxpy).
+    """
+
+    phy: PhyConfig = field(default_factory=PhyConfig)
+    mac: MacTiming = field(default_factory=MacTiming)
+    channel: ChannelConfig = field(default_factory=ChannelConfig)
+    traffic: TrafficConfig = field(default_factory=TrafficConfig)
+    scheduler: str = "greedy"
+
+    def __post_init__(self) -> None:
+        if self.scheduler not in SCHEDULERS:
+            raise ValueError(f"scheduler must be one of {SCHEDULERS}, got {self.scheduler!r}")
+        self.traffic.period_ticks(self.mac.tick_us)  # validates period_ms against tick_us
+
+
+def make_allocator(config: WifiConfig, n_stations: int, scheduler: str | None = None) -> Allocator:
+    """A fresh allocator of ``scheduler`` (default ``config.scheduler``) for ``n_stations``."""
+    name = scheduler or config.scheduler
+    if name == "greedy":
+        return GreedyEdfAllocator(config.phy.bandwidth_mhz)
+    if name in ("convex", "convex-cvxpy"):
+        return ConvexAllocator(
+            ConvexAllocatorConfig(
+                bandwidth_mhz=config.phy.bandwidth_mhz,
+                n_stations=max(n_stations, 1),
+                hot_path=name == "convex",
+            )
+        )
+    raise ValueError(f"scheduler must be one of {SCHEDULERS}, got {name!r}")

@@ -1,0 +1,239 @@
+"""The whole-horizon allocation LP: an upper bound on the frames any scheduler delivers in time.
+
+For a recorded :class:`~codesign_mb.wifi.sim.Trace` (every admitted frame, every station's
+MCS at every tick) we relax the RU layout of each tick to its total data subcarriers and
+track, per frame ``f`` and tick ``k``, the cumulative fractions ``U_fk`` of its camera frame
+and ``V_fk`` of its state frame that have been sent (``eq_lp``)::
+
+    max  sum_f V_f,last
+    s.t. U_f,k-1 <= U_f,k,   V_f,k-1 <= V_f,k,   0 <= U, V <= 1
+         V_f,k <= U_f,k-1-p                                  state frame after camera frame
+         sum_f B_f^UL (U_fk - U_f,k-1) / (b_ik N_UL) <= S    UL subcarriers of tick k
+         sum_f B_f^DL (V_fk - V_f,k-1) / (b_ik N_DL) <= S    DL subcarriers of tick k
+
+with ``U`` defined on ``[capture, deadline - 1 - p)`` and ``V`` on ``[capture + 1 + p,
+deadline)`` (``eq_deadline``), ``b_ik`` the bits per subcarrier-symbol of station ``i``,
+``N_UL`` the most UL data symbols a tick can hold (one user, no DL), ``N_DL`` the DL symbols,
+and ``S`` the data subcarriers of the full-band RU, which no valid layout exceeds. Every
+simulated schedule is feasible for this LP (its layouts use at most ``S`` subcarriers, its
+PPDUs at most ``N_UL``/``N_DL`` symbols, and a state frame is queued only after its camera
+frame), so the optimum bounds the delivered count of any online allocator. Frames the channel
+will lose are left out: no schedule can deliver them.
+
+Solvers: HiGHS (``scipy.optimize.linprog``), Clarabel and OSQP, each called on the same
+matrices.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+from numpy.typing import NDArray
+
+from codesign_mb.wifi.sim import Trace
+
+__all__ = ["LP_SOLVERS", "OfflineLp", "OfflineResult", "build_offline_lp", "offline_optimum"]
+
+LP_SOLVERS = ("highs", "clarabel", "osqp")
+
+
+@dataclass(frozen=True)
+class OfflineLp:
+    """``eq_lp`` as ``max c'x  s.t.  A x <= b, 0 <= x <= 1``."""
+
+    c: NDArray[np.float64]
+    A: sp.csc_matrix
+    b: NDArray[np.float64]
+    n_frames: int
+
+    @property
+    def n_variables(self) -> int:
+        return int(self.c.size)
+
+    @property
+    def n_constraints(self) -> int:
+        return int(self.A.shape[0])
+
+
+@dataclass(frozen=True)
+class OfflineResult:
+    """Optimum of ``eq_lp`` (frames deliverable in time, fractional) and how it was found."""
+
+    optimum: float
+    solver: str
+    solve_time_s: float
+    status: str
+    n_variables: int
+    n_constraints: int
+    n_frames: int
+    n_frames_admitted: int
+
+
+def build_offline_lp(trace: Trace) -> OfflineLp:
+    """Assemble ``eq_lp`` for a trace (sparse, ``O(frames x window)`` non-zeros)."""
+    cfg = trace.config
+    mac, phy = cfg.mac, cfg.phy
+    p = cfg.traffic.processing_ticks(mac.tick_us)
+    n_ul = mac.ul_data_symbols(1, 0, phy.symbol_us, phy.bandwidth_mhz)
+    n_dl = mac.dl_data_symbols
+    full = float(phy.plan.full_band_data_subcarriers)
+    horizon = trace.horizon_ticks
+    frames = trace.frames[(trace.frames["ul_ok"] != 0) & (trace.frames["dl_ok"] != 0)]
+
+    rows: list[NDArray] = []
+    cols: list[NDArray] = []
+    vals: list[NDArray] = []
+    b: list[float] = []
+    ul_cap: list[tuple[int, int, float]] = []
+    dl_cap: list[tuple[int, int, float]] = []
+    objective: list[int] = []
+    nv = 0
+    r = 0
+
+    def add_row(entries: list[tuple[int, float]], rhs: float) -> None:
+        nonlocal r
+        idx = np.array([e[0] for e in entries], dtype=np.int64)
+        rows.append(np.full(idx.size, r, dtype=np.int64))
+        cols.append(idx)
+        vals.append(np.array([e[1] for e in entries]))
+        b.append(rhs)
+        r += 1
+
+    n_frames = 0
+    for f in frames.itertuples(index=False):
+        i, cap, dead = int(f.station), int(f.capture_tick), min(int(f.deadline_tick), horizon)
+        ul_ticks = np.arange(cap, dead - 1 - p)
+        dl_ticks = np.arange(cap + 1 + p, dead)
+        if ul_ticks.size == 0 or dl_ticks.size == 0:
+            continue
+        n_frames += 1
+        u0 = nv
+        nv += ul_ticks.size
+        v0 = nv
+        nv += dl_ticks.size
+        for j, k in enumerate(ul_ticks):  # monotone and capacity (U_k - U_{k-1})
+            if j > 0:
+                add_row([(u0 + j - 1, 1.0), (u0 + j, -1.0)], 0.0)
+            coef = f.ul_bits / (trace.ul_bpss[i, k] * n_ul * full)
+            ul_cap.append((int(k), u0 + j, coef))
+            if j > 0:
+                ul_cap.append((int(k), u0 + j - 1, -coef))
+        for j, k in enumerate(dl_ticks):
+            if j > 0:
+                add_row([(v0 + j - 1, 1.0), (v0 + j, -1.0)], 0.0)
+            coef = f.dl_bits / (trace.dl_bpss[i, k] * n_dl * full)
+            dl_cap.append((int(k), v0 + j, coef))
+            if j > 0:
+                dl_cap.append((int(k), v0 + j - 1, -coef))
+            ju = min(int(k) - 1 - p - cap, ul_ticks.size - 1)  # V_k <= U_{k-1-p}
+            add_row([(v0 + j, 1.0), (u0 + ju, -1.0)], 0.0)
+        objective.append(v0 + dl_ticks.size - 1)
+    for entries in (ul_cap, dl_cap):
+        if not entries:
+            continue
+        arr = np.array(entries)
+        ticks = arr[:, 0].astype(np.int64)
+        uniq, inverse = np.unique(ticks, return_inverse=True)
+        rows.append(r + inverse)
+        cols.append(arr[:, 1].astype(np.int64))
+        vals.append(arr[:, 2])
+        b.extend([1.0] * uniq.size)
+        r += uniq.size
+    A = (
+        sp.csc_matrix(
+            (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(r, nv)
+        )
+        if rows
+        else sp.csc_matrix((0, nv))
+    )
+    c = np.zeros(nv)
+    c[objective] = 1.0
+    return OfflineLp(c=c, A=A, b=np.asarray(b, dtype=float), n_frames=n_frames)
+
+
+def _solve(lp: OfflineLp, solver: str) -> tuple[float, str]:
+    nv = lp.n_variables
+    if nv == 0:
+        return 0.0, "optimal"
+    if solver == "highs":
+        from scipy.optimize import linprog
+
+        res = linprog(-lp.c, A_ub=lp.A, b_ub=lp.b, bounds=(0.0, 1.0), method="highs")
+        if res.status != 0:
+            return float("nan"), f"highs: {res.message}"
+        return float(-res.fun), "optimal"
+    if solver == "clarabel":
+        import clarabel
+
+        A = sp.vstack([lp.A, sp.identity(nv), -sp.identity(nv)], format="csc")
+        b = np.concatenate([lp.b, np.ones(nv), np.zeros(nv)])
+        P = sp.csc_matrix((nv, nv))
+        settings = clarabel.DefaultSettings()
+        settings.verbose = False
+        s = clarabel.DefaultSolver(
+            P, -lp.c, A, b, [clarabel.NonnegativeConeT(A.shape[0])], settings
+        )
+        sol = s.solve()
+        status = str(sol.status)
+        if "Solved" not in status:
+            return float("nan"), f"clarabel: {status}"
+        return float(lp.c @ np.asarray(sol.x)), "optimal"
+    if solver == "osqp":
+        import osqp
+
+        A = sp.vstack([lp.A, sp.identity(nv)], format="csc")
+        lower = np.concatenate([np.full(lp.A.shape[0], -np.inf), np.zeros(nv)])
+        upper = np.concatenate([lp.b, np.ones(nv)])
+        m = osqp.OSQP()
+        m.setup(
+            sp.csc_matrix((nv, nv)),
+            -lp.c,
+            A,
+            lower,
+            upper,
+            verbose=False,
+            eps_abs=1e-7,
+            eps_rel=1e-7,
+            max_iter=200_000,
+            polishing=True,
+        )
+        res = m.solve(raise_error=False)
+        status = str(res.info.status)
+        if res.x is None or not np.all(np.isfinite(res.x)):
+            return float("nan"), f"osqp: {status}"
+        return float(lp.c @ res.x), status
+    raise ValueError(f"solver must be one of {LP_SOLVERS}, got {solver!r}")
+
+
+def offline_optimum(trace: Trace, *, solver: str = "highs") -> OfflineResult:
+    """Solve ``eq_lp`` for ``trace``: the most frames any scheduler can deliver in time.
+
+    Parameters
+    ----------
+    trace:
+        A recorded trace (:func:`codesign_mb.wifi.cell.generate_trace`,
+        :meth:`SharedChannel.trace`, or an instance file).
+    solver:
+        ``"highs"`` (exact simplex/IPM, default), ``"clarabel"`` (interior point) or ``"osqp"``
+        (first order; approximate on LPs).
+    """
+    solver = solver.lower()
+    if solver not in LP_SOLVERS:
+        raise ValueError(f"solver must be one of {LP_SOLVERS}, got {solver!r}")
+    lp = build_offline_lp(trace)
+    start = time.perf_counter()
+    value, status = _solve(lp, solver)
+    elapsed = time.perf_counter() - start
+    return OfflineResult(
+        optimum=value,
+        solver=solver,
+        solve_time_s=elapsed,
+        status=status,
+        n_variables=lp.n_variables,
+        n_constraints=lp.n_constraints,
+        n_frames=lp.n_frames,
+        n_frames_admitted=len(trace.frames),
+    )

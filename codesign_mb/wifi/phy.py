@@ -1,0 +1,601 @@
+"""IEEE 802.11ax (WiFi 6) PHY: the OFDMA resource-unit plan, MCS rates and PPDU airtime.
+
+Resource units (RUs)
+--------------------
+An HE PPDU of 20/40/80 MHz is cut into RUs of 26, 52, 106, 242, 484 and 996 tones with
+24, 48, 102, 234, 468 and 980 data subcarriers (IEEE 802.11ax-2021, 27.3.2.2). Their tone
+positions are those of Tables 27-7 to 27-9 (subcarrier index ranges, DC at 0). Two RUs
+*overlap* when their tone sets intersect; an OFDMA layout is a set of pairwise non-overlapping
+RUs, one per station (``eq_layout``). We also describe every RU by the 26-tone RUs it covers
+(its *units*, a bit mask): the tone plan is laminar, so two RUs overlap iff their unit masks
+intersect, which is what the allocators use. The centre 26-tone RU of a 20 MHz (and of the
+80 MHz) channel is covered by no 52- or 106-tone RU.
+
+Rates
+-----
+``rate = N_SD * N_BPSCS * R * N_SS / (T_DFT + T_GI)`` (``eq_rate``) with ``T_DFT = 12.8 us``
+and ``T_GI`` in {0.8, 1.6, 3.2} us. E.g. 484-tone RU, MCS 11, 1 stream, 0.8 us GI:
+468 * 10 * 5/6 / 13.6 us = 286.8 Mb/s.
+
+Airtime
+-------
+:class:`MacTiming` holds every overhead of the two frame exchanges of a schedule tick
+explicitly: a downlink multi-user exchange (``eq_air_dl``: HE MU PPDU, SIFS, the stations'
+block acks in an HE TB PPDU, SIFS) and a trigger-based uplink exchange (``eq_air_ul``: basic
+Trigger frame, SIFS, HE TB PPDU, SIFS, multi-STA BlockAck, SIFS), after one channel access.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from functools import cache
+
+import numpy as np
+from numpy.typing import NDArray
+
+__all__ = [
+    "BANDWIDTHS_MHZ",
+    "DATA_SUBCARRIERS",
+    "GUARD_INTERVALS_US",
+    "MCS_TABLE",
+    "RU_TONES",
+    "SYMBOL_DFT_US",
+    "MacTiming",
+    "Mcs",
+    "PhyConfig",
+    "ResourceUnit",
+    "RuPlan",
+    "data_rate_mbps",
+    "legacy_ppdu_us",
+    "ru_plan",
+]
+
+SYMBOL_DFT_US = 12.8
+"""HE OFDM symbol duration without guard interval (78.125 kHz subcarrier spacing)."""
+
+GUARD_INTERVALS_US = (0.8, 1.6, 3.2)
+BANDWIDTHS_MHZ = (20, 40, 80)
+RU_TONES = (26, 52, 106, 242, 484, 996)
+DATA_SUBCARRIERS = {26: 24, 52: 48, 106: 102, 242: 234, 484: 468, 996: 980}
+"""Data subcarriers ``N_SD`` of each RU size (the rest are pilots)."""
+
+
+@dataclass(frozen=True, slots=True)
+class Mcs:
+    """One HE-MCS: modulation order (bits per subcarrier ``N_BPSCS``) and code rate ``R``."""
+
+    index: int
+    modulation: str
+    bits_per_subcarrier: int
+    code_rate: float
+
+    @property
+    def bits_per_data_subcarrier(self) -> float:
+        """Information bits per data subcarrier per symbol and stream: ``N_BPSCS * R``."""
+        return self.bits_per_subcarrier * self.code_rate
+
+
+MCS_TABLE: tuple[Mcs, ...] = (
+    Mcs(0, "BPSK", 1, 1 / 2),
+    Mcs(1, "QPSK", 2, 1 / 2),
+    Mcs(2, "QPSK", 2, 3 / 4),
+    Mcs(3, "16-QAM", 4, 1 / 2),
+    Mcs(4, "16-QAM", 4, 3 / 4),
+    Mcs(5, "64-QAM", 6, 2 / 3),
+    Mcs(6, "64-QAM", 6, 3 / 4),
+    Mcs(7, "64-QAM", 6, 5 / 6),
+    Mcs(8, "256-QAM", 8, 3 / 4),
+    Mcs(9, "256-QAM", 8, 5 / 6),
+    Mcs(10, "1024-QAM", 10, 3 / 4),
+    Mcs(11, "1024-QAM", 10, 5 / 6),
+)
+"""HE-MCS 0-11 (IEEE 802.11ax-2021, Tables 27-55 ff.)."""
+
+
+def _check_mcs(mcs: int) -> Mcs:
+    if isinstance(mcs, bool) or int(mcs) != mcs or not 0 <= mcs < len(MCS_TABLE):
+        raise ValueError(f"mcs must be an integer in [0, 11], got {mcs!r}")
+    return MCS_TABLE[int(mcs)]
+
+
+def _check_gi(gi_us: float) -> float:
+    if not any(math.isclose(gi_us, g) for g in GUARD_INTERVALS_US):
+        raise ValueError(f"guard_interval_us must be one of 0.8, 1.6, 3.2, got {gi_us!r}")
+    return float(gi_us)
+
+
+def data_rate_mbps(
+    ru_tones: int, mcs: int, *, spatial_streams: int = 1, guard_interval_us: float = 0.8
+) -> float:
+    """PHY data rate of one RU (``eq_rate``), in Mb/s.
+
+    Parameters
+    ----------
+    ru_tones:
+        RU size in tones (26, 52, 106, 242, 484 or 996).
+    mcs:
+        HE-MCS index 0-11.
+    spatial_streams:
+        ``N_SS`` (1-8).
+    guard_interval_us:
+        0.8, 1.6 or 3.2 us.
+
+    Examples
+    --------
+    >>> round(data_rate_mbps(484, 11), 1), round(data_rate_mbps(484, 0), 1)
+    (286.8, 17.2)
+    >>> round(data_rate_mbps(242, 7), 1)
+    86.0
+    """
+    if ru_tones not in DATA_SUBCARRIERS:
+        raise ValueError(f"ru_tones must be one of {RU_TONES}, got {ru_tones!r}")
+    if isinstance(spatial_streams, bool) or spatial_streams not in range(1, 9):
+        raise ValueError(f"spatial_streams must be an integer in [1, 8], got {spatial_streams!r}")
+    m = _check_mcs(mcs)
+    symbol_us = SYMBOL_DFT_US + _check_gi(guard_interval_us)
+    bits = DATA_SUBCARRIERS[ru_tones] * m.bits_per_data_subcarrier * spatial_streams
+    return bits / symbol_us  # eq_rate (bits per us = Mb/s)
+
+
+# --------------------------------------------------------------------------- RU plan
+
+# Tone ranges (inclusive) of each RU, IEEE 802.11ax-2021 Tables 27-7 (20 MHz), 27-8 (40 MHz)
+# and 27-9 (80 MHz). Two ranges for RUs split by the DC tones.
+_Ranges = tuple[tuple[int, int], ...]
+_TONE_PLAN: dict[int, dict[int, tuple[_Ranges, ...]]] = {
+    20: {
+        26: (
+            ((-121, -96),), ((-95, -70),), ((-68, -43),), ((-42, -17),), ((-16, -4), (4, 16)),
+            ((17, 42),), ((43, 68),), ((70, 95),), ((96, 121),),
+        ),
+        52: (((-121, -70),), ((-68, -17),), ((17, 68),), ((70, 121),)),
+        106: (((-122, -17),), ((17, 122),)),
+        242: (((-122, -2), (2, 122)),),
+    },
+    40: {
+        26: (
+            ((-243, -218),), ((-217, -192),), ((-189, -164),), ((-163, -138),), ((-136, -111),),
+            ((-109, -84),), ((-83, -58),), ((-55, -30),), ((-29, -4),), ((4, 29),), ((30, 55),),
+            ((58, 83),), ((84, 109),), ((111, 136),), ((138, 163),), ((164, 189),),
+            ((192, 217),), ((218, 243),),
+        ),
+        52: (
+            ((-243, -192),), ((-189, -138),), ((-109, -58),), ((-55, -4),), ((4, 55),),
+            ((58, 109),), ((138, 189),), ((192, 243),),
+        ),
+        106: (((-243, -138),), ((-109, -4),), ((4, 109),), ((138, 243),)),
+        242: (((-244, -3),), ((3, 244),)),
+        484: (((-244, -3), (3, 244)),),
+    },
+    80: {
+        26: (
+            ((-499, -474),), ((-473, -448),), ((-445, -420),), ((-419, -394),), ((-392, -367),),
+            ((-365, -340),), ((-339, -314),), ((-311, -286),), ((-285, -260),), ((-257, -232),),
+            ((-231, -206),), ((-203, -178),), ((-177, -152),), ((-150, -125),), ((-123, -98),),
+            ((-97, -72),), ((-69, -44),), ((-43, -18),), ((-16, -4), (4, 16)), ((18, 43),),
+            ((44, 69),), ((72, 97),), ((98, 123),), ((125, 150),), ((152, 177),),
+            ((178, 203),), ((206, 231),), ((232, 257),), ((260, 285),), ((286, 311),),
+            ((314, 339),), ((340, 365),), ((367, 392),), ((394, 419),), ((420, 445),),
+            ((448, 473),), ((474, 499),),
+        ),
+        52: (
+            ((-499, -448),), ((-445, -394),), ((-365, -314),), ((-311, -260),), ((-257, -206),),
+            ((-203, -152),), ((-123, -72),), ((-69, -18),), ((18, 69),), ((72, 123),),
+            ((152, 203),), ((206, 257),), ((260, 311),), ((314, 365),), ((394, 445),),
+            ((448, 499),),
+        ),
+        106: (
+            ((-499, -394),), ((-365, -260),), ((-257, -152),), ((-123, -18),), ((18, 123),),
+            ((152, 257),), ((260, 365),), ((394, 499),),
+        ),
+        242: (((-500, -259),), ((-258, -17),), ((17, 258),), ((259, 500),)),
+        484: (((-500, -259), (-258, -17)), ((17, 258), (259, 500))),
+        996: (((-500, -3), (3, 500)),),
+    },
+}  # fmt: skip
+
+
+@dataclass(frozen=True, slots=True)
+class ResourceUnit:
+    """One RU of a channel's plan.
+
+    Attributes
+    ----------
+    index:
+        Position in :attr:`RuPlan.units` (sorted by size, then frequency).
+    tones:
+        RU size (26, 52, ...); :attr:`data_subcarriers` is its ``N_SD``.
+    position:
+        Index among the RUs of the same size, from the lowest frequency (``RU1`` is 0).
+    tone_ranges:
+        Inclusive subcarrier-index ranges of the RU (DC = 0).
+    unit_mask:
+        Bit ``k`` set iff the RU covers the ``k``-th 26-tone RU.
+    """
+
+    index: int
+    tones: int
+    position: int
+    tone_ranges: tuple[tuple[int, int], ...]
+    unit_mask: int
+
+    @property
+    def data_subcarriers(self) -> int:
+        return DATA_SUBCARRIERS[self.tones]
+
+    @property
+    def n_units(self) -> int:
+        """Number of 26-tone RUs it covers."""
+        return self.unit_mask.bit_count()
+
+    def overlaps(self, other: ResourceUnit) -> bool:
+        """Whether the two RUs share a subcarrier (``eq_layout``)."""
+        return bool(self.unit_mask & other.unit_mask)
+
+
+@dataclass(frozen=True)
+class RuPlan:
+    """Every RU of one channel bandwidth and how they overlap.
+
+    Attributes
+    ----------
+    bandwidth_mhz:
+        20, 40 or 80.
+    units:
+        All RUs, smallest first (``units[i].index == i``).
+    sizes:
+        The RU sizes available, ascending.
+    n_units:
+        Number of 26-tone RUs (9, 18, 37): the finest partition of the channel.
+    """
+
+    bandwidth_mhz: int
+    units: tuple[ResourceUnit, ...]
+    sizes: tuple[int, ...]
+    n_units: int
+
+    @property
+    def full_band_data_subcarriers(self) -> int:
+        """``N_SD`` of the widest RU: an upper bound on the data subcarriers of any layout."""
+        return DATA_SUBCARRIERS[self.sizes[-1]]
+
+    def of_size(self, tones: int) -> tuple[ResourceUnit, ...]:
+        """The RUs of one size, from low to high frequency."""
+        return tuple(u for u in self.units if u.tones == tones)
+
+    def count(self, tones: int) -> int:
+        """How many RUs of one size fit in the channel."""
+        return len(self.of_size(tones))
+
+    def is_valid_layout(self, ru_indices: list[int] | tuple[int, ...] | NDArray) -> bool:
+        """Whether the RUs (indices into :attr:`units`, ``-1`` = none) are pairwise disjoint."""
+        used = 0
+        for r in np.asarray(ru_indices, dtype=int).ravel():
+            if r < 0:
+                continue
+            if r >= len(self.units):
+                return False
+            mask = self.units[r].unit_mask
+            if used & mask:
+                return False
+            used |= mask
+        return True
+
+    def overlap_matrix(self) -> NDArray[np.bool_]:
+        """``M[i, j]`` is True iff RUs ``i`` and ``j`` share a subcarrier (by tone positions)."""
+        tones = [_tone_set(u.tone_ranges) for u in self.units]
+        n = len(tones)
+        out = np.zeros((n, n), dtype=bool)
+        for i in range(n):
+            for j in range(n):
+                out[i, j] = bool(tones[i] & tones[j])
+        return out
+
+
+def _tone_set(ranges: tuple[tuple[int, int], ...]) -> set[int]:
+    return {k for lo, hi in ranges for k in range(lo, hi + 1)}
+
+
+@cache
+def ru_plan(bandwidth_mhz: int) -> RuPlan:
+    """The 802.11ax RU plan of a 20, 40 or 80 MHz channel (Tables 27-7 to 27-9).
+
+    Examples
+    --------
+    >>> plan = ru_plan(40)
+    >>> [plan.count(t) for t in plan.sizes]
+    [18, 8, 4, 2, 1]
+    """
+    if bandwidth_mhz not in _TONE_PLAN:
+        raise ValueError(f"bandwidth_mhz must be one of {BANDWIDTHS_MHZ}, got {bandwidth_mhz!r}")
+    table = _TONE_PLAN[bandwidth_mhz]
+    small = [_tone_set(r) for r in table[26]]
+    units: list[ResourceUnit] = []
+    for tones in sorted(table):
+        for position, ranges in enumerate(table[tones]):
+            tone_set = _tone_set(ranges)
+            if len(tone_set) != tones:  # guards the transcription of the tables
+                raise AssertionError(f"{tones}-tone RU {position} has {len(tone_set)} tones")
+            mask = sum(1 << k for k, s in enumerate(small) if s & tone_set)
+            units.append(ResourceUnit(len(units), tones, position, ranges, mask))
+    return RuPlan(bandwidth_mhz, tuple(units), tuple(sorted(table)), len(small))
+
+
+# --------------------------------------------------------------------------- config & airtime
+
+
+@dataclass(frozen=True)
+class PhyConfig:
+    """PHY settings of the channel.
+
+    Parameters
+    ----------
+    bandwidth_mhz:
+        Channel width: 20, 40 or 80 MHz (the paper: 40).
+    guard_interval_us:
+        HE guard interval: 0.8, 1.6 or 3.2 us.
+    spatial_streams:
+        ``N_SS`` of every station (1 or 2).
+    """
+
+    bandwidth_mhz: int = 40
+    guard_interval_us: float = 0.8
+    spatial_streams: int = 1
+
+    def __post_init__(self) -> None:
+        if self.bandwidth_mhz not in BANDWIDTHS_MHZ:
+            raise ValueError(
+                f"bandwidth_mhz must be one of {BANDWIDTHS_MHZ}, got {self.bandwidth_mhz!r}"
+            )
+        _check_gi(self.guard_interval_us)
+        if isinstance(self.spatial_streams, bool) or self.spatial_streams not in (1, 2):
+            raise ValueError(f"spatial_streams must be 1 or 2, got {self.spatial_streams!r}")
+
+    @property
+    def symbol_us(self) -> float:
+        """HE data symbol duration ``12.8 us + GI``."""
+        return SYMBOL_DFT_US + self.guard_interval_us
+
+    @property
+    def plan(self) -> RuPlan:
+        return ru_plan(self.bandwidth_mhz)
+
+    def bits_per_subcarrier_symbol(self, mcs: int | NDArray) -> NDArray[np.float64]:
+        """Information bits per data subcarrier per HE symbol: ``N_BPSCS * R * N_SS``."""
+        table = np.array([m.bits_per_data_subcarrier for m in MCS_TABLE])
+        return table[np.asarray(mcs, dtype=int)] * self.spatial_streams
+
+    def rate_table(self) -> list[dict[str, float | int | str]]:
+        """Data rate of every (RU size, MCS) of this channel, in Mb/s (``eq_rate``)."""
+        rows: list[dict[str, float | int | str]] = []
+        for tones in self.plan.sizes:
+            for m in MCS_TABLE:
+                rate = data_rate_mbps(
+                    tones,
+                    m.index,
+                    spatial_streams=self.spatial_streams,
+                    guard_interval_us=self.guard_interval_us,
+                )
+                rows.append(
+                    {
+                        "ru_tones": tones,
+                        "data_subcarriers": DATA_SUBCARRIERS[tones],
+                        "ru_count": self.plan.count(tones),
+                        "mcs": m.index,
+                        "modulation": m.modulation,
+                        "code_rate": round(m.code_rate, 4),
+                        "rate_mbps": round(rate, 4),
+                    }
+                )
+        return rows
+
+
+def legacy_ppdu_us(payload_bytes: int, rate_mbps: float) -> float:
+    """Airtime of a non-HT (legacy OFDM) PPDU: 20 us preamble + 4 us symbols.
+
+    ``20 + 4 * ceil((16 + 8 L + 6) / (4 * rate))``: SERVICE (16) and tail (6) bits included.
+    """
+    bits_per_symbol = 4.0 * rate_mbps
+    return 20.0 + 4.0 * math.ceil((16 + 8 * payload_bytes + 6) / bits_per_symbol)
+
+
+@dataclass(frozen=True)
+class MacTiming:
+    """Every overhead of one schedule tick, explicit (IEEE 802.11ax-2021 clauses 26, 27).
+
+    One tick of ``tick_us`` holds one channel access, then (if any downlink frame is queued)
+    a DL MU exchange, then (if any uplink frame is queued) a trigger-based UL exchange:
+
+    ``T_DL = T_MU(N_dl) + SIFS + T_TB(ack) + SIFS`` (``eq_air_dl``),
+    ``T_UL = T_trig(n) + SIFS + T_TB(N_ul) + SIFS + T_MBA(n) + SIFS`` (``eq_air_ul``),
+
+    and the UL PPDU gets every data symbol that fits: ``N_ul = floor((tick - access - T_DL -
+    overheads of T_UL) / T_sym)``.
+
+    Parameters
+    ----------
+    tick_us:
+        Schedule update period (paper Table II: 1 ms).
+    sifs_us:
+        Short interframe space (5 GHz: 16 us).
+    channel_access_us:
+        AIFS plus mean backoff of the AP once per tick (e.g. AC_VI: 34 + 3.5 * 9 us).
+    legacy_rate_mbps:
+        Non-HT rate of the Trigger and multi-STA BlockAck frames (6, 12, 24 Mb/s ...).
+    trigger_base_bytes:
+        Basic Trigger frame without user info: MAC header 16 + common info 8 + FCS 4 (+ pad).
+    trigger_user_bytes:
+        User Info field per scheduled station (basic trigger: 6).
+    mba_base_bytes, mba_user_bytes:
+        Multi-STA BlockAck: header 16 + BA control 2 + FCS 4; per station AID/TID 2 + SSN 2
+        + 8-byte bitmap.
+    he_legacy_preamble_us:
+        L-STF 8 + L-LTF 8 + L-SIG 4 + RL-SIG 4 + HE-SIG-A 8 us.
+    he_stf_tb_us, he_stf_mu_us:
+        HE-STF of an HE TB PPDU (8 us) and of an HE MU PPDU (4 us).
+    he_ltf_us, he_ltf_count:
+        One HE-LTF symbol (2x LTF + 1.6 us GI = 8 us) and how many (one per stream).
+    sig_b_bits_per_symbol, sig_b_common_bits, sig_b_user_bits:
+        HE-SIG-B at MCS 0 (26 bits per 4 us symbol and 20 MHz content channel), its common
+        field and one 21-bit user field per station, split over the content channels.
+    packet_extension_us:
+        PE field at the end of every HE PPDU (0-16 us).
+    dl_data_symbols:
+        Data symbols of the DL MU PPDU when downlink frames are queued.
+    dl_ack_symbols:
+        Data symbols of the HE TB PPDU that carries the stations' block acks of the DL.
+    mpdu_payload_bytes, mpdu_overhead_bytes:
+        Frames are split into MPDUs of at most ``mpdu_payload_bytes``; each costs
+        ``mpdu_overhead_bytes`` more (MAC header 26 + FCS 4 + A-MPDU delimiter 4).
+    """
+
+    tick_us: float = 1000.0
+    sifs_us: float = 16.0
+    channel_access_us: float = 66.0
+    legacy_rate_mbps: float = 24.0
+    trigger_base_bytes: int = 28
+    trigger_user_bytes: int = 6
+    mba_base_bytes: int = 22
+    mba_user_bytes: int = 12
+    he_legacy_preamble_us: float = 32.0
+    he_stf_tb_us: float = 8.0
+    he_stf_mu_us: float = 4.0
+    he_ltf_us: float = 8.0
+    he_ltf_count: int = 1
+    sig_b_bits_per_symbol: int = 26
+    sig_b_common_bits: int = 18
+    sig_b_user_bits: int = 21
+    packet_extension_us: float = 4.0
+    dl_data_symbols: int = 6
+    dl_ack_symbols: int = 2
+    mpdu_payload_bytes: int = 1500
+    mpdu_overhead_bytes: int = 34
+
+    def __post_init__(self) -> None:
+        for name in (
+            "tick_us",
+            "legacy_rate_mbps",
+            "he_ltf_us",
+            "sig_b_bits_per_symbol",
+            "mpdu_payload_bytes",
+        ):
+            value = getattr(self, name)
+            if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
+                raise ValueError(f"{name} must be > 0, got {value!r}")
+        for name in (
+            "sifs_us",
+            "channel_access_us",
+            "trigger_base_bytes",
+            "trigger_user_bytes",
+            "mba_base_bytes",
+            "mba_user_bytes",
+            "he_legacy_preamble_us",
+            "he_stf_tb_us",
+            "he_stf_mu_us",
+            "sig_b_common_bits",
+            "sig_b_user_bits",
+            "packet_extension_us",
+            "dl_ack_symbols",
+            "mpdu_overhead_bytes",
+        ):
+            value = getattr(self, name)
+            if not (isinstance(value, int | float) and math.isfinite(value) and value >= 0):
+                raise ValueError(f"{name} must be >= 0, got {value!r}")
+        for name in ("he_ltf_count", "dl_data_symbols"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
+
+    # -- frame sizes --------------------------------------------------------------------------
+    def psdu_bits(self, payload_bytes: int) -> int:
+        """Bits on the air for a MAC frame of ``payload_bytes``, MPDU overheads included."""
+        n_mpdu = max(1, math.ceil(payload_bytes / self.mpdu_payload_bytes))
+        return 8 * (payload_bytes + n_mpdu * self.mpdu_overhead_bytes)
+
+    # -- PPDUs --------------------------------------------------------------------------------
+    def trigger_us(self, n_users: int) -> float:
+        """Basic Trigger frame (non-HT PPDU) addressing ``n_users`` stations."""
+        size = self.trigger_base_bytes + self.trigger_user_bytes * max(n_users, 1)
+        return legacy_ppdu_us(size, self.legacy_rate_mbps)
+
+    def multi_sta_ba_us(self, n_users: int) -> float:
+        """Multi-STA BlockAck (non-HT PPDU) acknowledging ``n_users`` stations."""
+        size = self.mba_base_bytes + self.mba_user_bytes * max(n_users, 1)
+        return legacy_ppdu_us(size, self.legacy_rate_mbps)
+
+    def he_tb_ppdu_us(self, n_symbols: int, symbol_us: float) -> float:
+        """HE trigger-based PPDU: legacy part, HE-STF 8 us, HE-LTFs, data, PE."""
+        preamble = self.he_legacy_preamble_us + self.he_stf_tb_us
+        return (
+            preamble
+            + self.he_ltf_count * self.he_ltf_us
+            + n_symbols * symbol_us
+            + (self.packet_extension_us)
+        )
+
+    def he_mu_ppdu_us(
+        self, n_symbols: int, n_users: int, symbol_us: float, bandwidth_mhz: int
+    ) -> float:
+        """HE MU PPDU: legacy part, HE-SIG-B (users over the content channels), STF, LTFs, data."""
+        channels = 1 if bandwidth_mhz == 20 else 2
+        users_per_channel = math.ceil(max(n_users, 1) / channels)
+        sig_b_bits = self.sig_b_common_bits + self.sig_b_user_bits * users_per_channel
+        sig_b_us = 4.0 * math.ceil(sig_b_bits / self.sig_b_bits_per_symbol)
+        preamble = self.he_legacy_preamble_us + sig_b_us + self.he_stf_mu_us
+        return (
+            preamble
+            + self.he_ltf_count * self.he_ltf_us
+            + n_symbols * symbol_us
+            + (self.packet_extension_us)
+        )
+
+    # -- the tick -----------------------------------------------------------------------------
+    def dl_exchange_us(self, n_users: int, symbol_us: float, bandwidth_mhz: int) -> float:
+        """``eq_air_dl``: MU PPDU + SIFS + block acks in a TB PPDU + SIFS (0 without DL users)."""
+        if n_users <= 0:
+            return 0.0
+        mu = self.he_mu_ppdu_us(self.dl_data_symbols, n_users, symbol_us, bandwidth_mhz)
+        ack = self.he_tb_ppdu_us(self.dl_ack_symbols, symbol_us)
+        return mu + self.sifs_us + ack + self.sifs_us
+
+    def ul_overhead_us(self, n_users: int, symbol_us: float) -> float:
+        """``eq_air_ul`` without the data symbols: trigger, SIFS, TB preamble, SIFS, M-BA, SIFS."""
+        return (
+            self.trigger_us(n_users)
+            + self.sifs_us
+            + self.he_tb_ppdu_us(0, symbol_us)
+            + self.sifs_us
+            + self.multi_sta_ba_us(n_users)
+            + self.sifs_us
+        )
+
+    def ul_data_symbols(
+        self, n_ul_users: int, n_dl_users: int, symbol_us: float, bandwidth_mhz: int
+    ) -> int:
+        """Data symbols left for the UL TB PPDU in one tick (0 if none fit)."""
+        if n_ul_users <= 0:
+            return 0
+        left = (
+            self.tick_us
+            - self.channel_access_us
+            - self.dl_exchange_us(n_dl_users, symbol_us, bandwidth_mhz)
+            - self.ul_overhead_us(n_ul_users, symbol_us)
+        )
+        return max(0, math.floor(left / symbol_us + 1e-9))
+
+    def breakdown(
+        self, n_ul_users: int, n_dl_users: int, symbol_us: float, bandwidth_mhz: int
+    ) -> dict[str, float]:
+        """Airtime of each part of a tick, in us (for the docs and ``phy-table``)."""
+        n_ul = self.ul_data_symbols(n_ul_users, n_dl_users, symbol_us, bandwidth_mhz)
+        return {
+            "channel_access_us": self.channel_access_us,
+            "dl_exchange_us": self.dl_exchange_us(n_dl_users, symbol_us, bandwidth_mhz),
+            "dl_data_us": self.dl_data_symbols * symbol_us if n_dl_users else 0.0,
+            "trigger_us": self.trigger_us(n_ul_users),
+            "ul_overhead_us": self.ul_overhead_us(n_ul_users, symbol_us),
+            "ul_data_symbols": float(n_ul),
+            "ul_data_us": n_ul * symbol_us,
+            "multi_sta_ba_us": self.multi_sta_ba_us(n_ul_users),
+        }

@@ -1,0 +1,150 @@
+"""The shared WiFi cell as N ``Link``s: lockstep, deadlines, determinism, errors."""
+
+from __future__ import annotations
+
+import math
+
+import gymnasium as gym
+import numpy as np
+import pytest
+
+from codesign_mb.adaptation.base import StaticQos
+from codesign_mb.estimation.base import PassThroughEstimator
+from codesign_mb.network import Link, LinkObservationWrapper, QosRequest
+from codesign_mb.wifi import ChannelConfig, SharedChannel, WifiConfig, WifiLink, rollout_shared
+from codesign_mb.wifi.phy import MacTiming
+
+CELL = WifiConfig(
+    channel=ChannelConfig(fixed_mcs=1, q0=0.9, rician_k_db=math.inf),
+    mac=MacTiming(legacy_rate_mbps=6.0),
+)
+
+
+class Drift(gym.Env):
+    """A scalar that drifts by one per step; the robot tracks it (success if within 3)."""
+
+    observation_space = gym.spaces.Box(-np.inf, np.inf, shape=(2,), dtype=np.float64)
+    action_space = gym.spaces.Box(-np.inf, np.inf, shape=(1,), dtype=np.float64)
+    remote_slice = slice(1, 2)
+    horizon = 30
+
+    def remote_prior(self):
+        return np.zeros(1)
+
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        self.x, self.robot, self.t = 0.0, 0.0, 0
+        return np.array([self.robot, self.x]), {"success": False}
+
+    def step(self, action):
+        self.robot += float(np.clip(action[0], -2, 2))
+        self.x += 1.0 + 0.1 * self.np_random.standard_normal()
+        self.t += 1
+        ok = abs(self.robot - self.x) < 3.0
+        obs = np.array([self.robot, self.x])
+        return obs, float(ok), False, self.t >= self.horizon, {"success": ok}
+
+
+class Follow:
+    def reset(self, *, seed=None):
+        return None
+
+    def act(self, obs):
+        return np.array([obs[1] - obs[0] + 1.0])
+
+
+def _robots(channel, q=1.0):
+    envs = [
+        LinkObservationWrapper(Drift(), channel.links[i], StaticQos(q, 1)) for i in range(channel.n)
+    ]
+    return envs, [PassThroughEstimator() for _ in envs], [Follow() for _ in envs]
+
+
+def test_wifi_link_is_a_link():
+    assert isinstance(WifiLink.single(CELL, seed=0), Link)
+
+
+def test_single_robot_gets_every_state_one_step_late():
+    link = WifiLink.single(CELL, seed=0)
+    link.reset(seed=1, prior=[0.0])
+    ages = []
+    for t in range(8):
+        rx = link.step([float(t)], QosRequest(1.0, 1))
+        ages.append(rx.age)
+        if t >= 1 and rx.age == 1:
+            assert rx.observation.tolist() == [float(t - 1)]
+    # one robot on MCS 1, 40 MHz: the channel has room; only the channel's 10 % loss shows
+    assert ages[0] == 1 and np.mean(np.array(ages[1:]) == 1) >= 0.6
+
+
+def test_zero_latency_is_rejected():
+    link = WifiLink.single(CELL, seed=0)
+    link.reset(prior=[0.0])
+    with pytest.raises(ValueError, match="latency_steps"):
+        link.step([1.0], QosRequest(1.0, 0))
+
+
+def test_lockstep_violation_raises():
+    channel = SharedChannel(CELL, 3, seed=0)
+    for link in channel.links:
+        link.reset(prior=[0.0])
+    channel.links[0].step([0.0], QosRequest(1.0, 1))
+    with pytest.raises(RuntimeError, match="lockstep"):
+        channel.links[2].step([0.0], QosRequest(1.0, 1))  # station 1 (offset 13) not sent
+
+
+def test_rollout_shared_is_deterministic_and_reports_stats():
+    channel = SharedChannel(CELL, 3)
+    tables = rollout_shared(*_robots(channel), channel=channel, seed=7)
+    first = [t.copy() for t in tables]
+    summary = channel.summary()
+    assert len(tables) == 3 and all(len(t) == Drift.horizon for t in tables)
+    assert summary["frames"].sum() == 3 * (Drift.horizon + 1)  # reset sends one too
+    assert (summary["mean_latency_ms"].dropna() <= 40.0).all()
+    channel2 = SharedChannel(CELL, 3)
+    again = rollout_shared(*_robots(channel2), channel=channel2, seed=7)
+    for a, b in zip(first, again, strict=True):
+        assert a.equals(b)
+    assert channel2.summary().equals(summary)
+    other = rollout_shared(*_robots(channel2), channel=channel2, seed=8)
+    assert not all(a.equals(b) for a, b in zip(first, other, strict=True))
+
+
+def test_overload_makes_frames_late_and_lower_q_helps():
+    heavy = SharedChannel(CELL, 12)
+    rollout_shared(*_robots(heavy, q=1.0), channel=heavy, seed=0, max_steps=10)
+    light = SharedChannel(CELL, 12)
+    rollout_shared(*_robots(light, q=0.3), channel=light, seed=0, max_steps=10)
+    late_heavy = heavy.summary()["late"].sum()
+    assert late_heavy > 0
+    assert light.summary()["late"].sum() < late_heavy
+    # eq_drop: q = 0.3 with q0 = 0.9 admits about a third of the frames
+    admitted = light.summary()["frames"].sum() / light.summary()["steps"].sum()
+    assert admitted == pytest.approx(0.3 / 0.9, abs=0.12)
+
+
+def test_trace_of_a_run_replays_to_the_same_deliveries():
+    from codesign_mb.wifi import offline_optimum, replay
+
+    channel = SharedChannel(CELL, 8, scheduler="convex")
+    rollout_shared(*_robots(channel), channel=channel, seed=3, max_steps=6)
+    trace = channel.trace()
+    online = int(channel.summary()["delivered"].sum())
+    # the replay stops at the same horizon, so it delivers what the online run delivered
+    assert replay(trace, "convex").delivered >= online
+    assert offline_optimum(trace).optimum + 1e-6 >= online
+
+
+def test_trace_json_round_trip(tmp_path):
+    from codesign_mb.wifi import Trace, generate_trace
+
+    trace = generate_trace(CELL, 3, steps=2, seed=0)
+    trace.save(tmp_path / "t.json")
+    back = Trace.load(tmp_path / "t.json")
+    assert back.frames.equals(trace.frames)
+    np.testing.assert_allclose(back.ul_bpss, trace.ul_bpss)
+    assert back.config == trace.config
+    bad = trace.to_json()
+    bad["config"]["phy"]["bandwidth"] = 40
+    with pytest.raises(ValueError, match="bandwidth"):
+        Trace.from_json(bad)
