@@ -59,7 +59,10 @@ def rollout(
             {
                 k: v
                 for k, v in info.items()
-                if k not in row and k not in _RECORDED and np.ndim(v) == 0 and not isinstance(v, str)
+                if k not in row
+                and k not in _RECORDED
+                and np.ndim(v) == 0
+                and not isinstance(v, str)
             }
         )
         rows.append(row)

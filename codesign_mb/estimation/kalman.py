@@ -1,0 +1,769 @@
+"""Kalman filtering with lost and delayed observations: the delay-compensating predictor.
+
+The robot receives ``y_t = z_{t - zeta_t}`` (``eq_output``), the freshest measurement that has
+arrived over the link, with its age ``zeta_t`` (``eq_time``). For the linear-Gaussian model::
+
+    x_{t+1} = A x_t + B u_t + w_t,   w_t ~ N(0, Q)
+    z_t     = C x_t + v_t,           v_t ~ N(0, R)
+
+the conditional mean given everything that has arrived is computed by
+:class:`IntermittentKalmanFilter`: a step without a new measurement is a prediction only; a
+measurement stamped ``s = t - zeta`` corrects the estimate of ``x_s`` and is propagated to
+``t`` by re-filtering the stored inputs; one older than a measurement already used (out of
+sequence) is handled the same way, so the result equals filtering all data in time order.
+(``Q``, ``R`` are the noise covariances here, as in Sinopoli et al. (2004); the plants and
+the LQR use ``W``, ``V`` for the noises and ``Q``, ``R`` for the costs.)
+
+The theory of Sinopoli et al. (2004), "Kalman filtering with intermittent observations",
+IEEE TAC 49(9), is here too: with arrivals ``gamma_t ~ Bernoulli(q)`` (``eq_d``) the expected
+error covariance stays bounded iff ``q > q_c``, with ``1 - 1/max|lambda(A)|^2 <= q_c``, equal
+when ``C`` is invertible (:func:`critical_arrival_bounds`); :func:`intermittent_riccati` runs
+the covariance recursion for a batch of arrival sequences (Monte-Carlo of ``E[P_t]``), and
+:func:`expected_covariance_bounds` gives the lower and upper bounds of ``lim E[P_t]``.
+
+:class:`KalmanEstimator` is the filter behind the :class:`~codesign_mb.estimation.Estimator`
+protocol, for a :class:`~codesign_mb.plants.linear.LinearPlantEnv` seen through a
+:class:`~codesign_mb.network.LinkObservationWrapper`.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass, field
+
+import gymnasium as gym
+import numpy as np
+import scipy.linalg
+from numpy.typing import ArrayLike, NDArray
+
+from codesign_mb.estimation.base import split_networked_observation
+from codesign_mb.network.link import PRIOR_TIMESTAMP
+from codesign_mb.network.wrapper import LinkObservationWrapper
+from codesign_mb.plants.linear import LinearPlantEnv, LinearPlantSpec
+
+__all__ = [
+    "IntermittentKalmanFilter",
+    "KalmanEstimator",
+    "critical_arrival_bounds",
+    "critical_arrival_lower_bound",
+    "expected_covariance_bounds",
+    "intermittent_riccati",
+    "steady_state_covariance",
+]
+
+FloatArray = NDArray[np.float64]
+
+
+# --------------------------------------------------------------------------- validation
+
+
+def _matrix(name: str, value: ArrayLike, shape: tuple[int, int] | None = None) -> FloatArray:
+    """``value`` as a finite 2-D float array (scalars become 1 x 1), shape checked."""
+    try:
+        out = np.array(value, dtype=float)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{name} must be a numeric matrix, got {value!r}") from exc
+    if out.ndim == 0:
+        out = out.reshape(1, 1)
+    if out.ndim != 2:
+        raise ValueError(f"{name} must be a 2-D matrix, got an array of shape {out.shape}")
+    if shape is not None and out.shape != shape:
+        raise ValueError(f"{name} must have shape {shape}, got {out.shape}")
+    if not np.isfinite(out).all():
+        raise ValueError(f"{name} must be finite")
+    return out
+
+
+def _vector(name: str, value: ArrayLike, size: int) -> FloatArray:
+    """``value`` as a finite 1-D float array of ``size`` entries (a scalar when size is 1)."""
+    try:
+        out = np.array(value, dtype=float)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{name} must be a numeric vector, got {value!r}") from exc
+    if out.ndim == 0 and size == 1:
+        out = out.reshape(1)
+    if out.shape != (size,):
+        raise ValueError(f"{name} must have shape ({size},), got {out.shape}")
+    if not np.isfinite(out).all():
+        raise ValueError(f"{name} must be finite, got {out.tolist()}")
+    return out
+
+
+def _covariance(name: str, value: ArrayLike, n: int) -> FloatArray:
+    """A symmetric positive semidefinite ``(n, n)`` matrix, symmetrised exactly."""
+    out = _matrix(name, value, (n, n))
+    scale = max(1.0, float(np.max(np.abs(out))))
+    if not np.allclose(out, out.T, rtol=0.0, atol=1e-10 * scale):
+        raise ValueError(f"{name} must be symmetric")
+    if float(np.min(np.linalg.eigvalsh(out))) < -1e-10 * scale:
+        raise ValueError(f"{name} must be positive semidefinite")
+    return 0.5 * (out + out.T)
+
+
+def _model(
+    A: ArrayLike, C: ArrayLike, Q: ArrayLike, R: ArrayLike
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+    """Validate the matrices of ``x+ = A x + w``, ``z = C x + v``; errors name the matrix."""
+    A = _matrix("A", A)
+    n = A.shape[0]
+    if A.shape != (n, n):
+        raise ValueError(f"A must be square, got shape {A.shape}")
+    C = _matrix("C", C)
+    if C.shape[1] != n:
+        raise ValueError(f"C must have {n} columns to match A, got shape {C.shape}")
+    p = C.shape[0]
+    return A, C, _covariance("Q", Q, n), _covariance("R", R, p)
+
+
+# --------------------------------------------------------------------------- filter maths
+
+
+def _predict(
+    x: FloatArray,
+    P: FloatArray,
+    A: FloatArray,
+    Q: FloatArray,
+    B: FloatArray | None,
+    u: FloatArray | None,
+) -> tuple[FloatArray, FloatArray]:
+    """Time update ``x+ = A x + B u``, ``P+ = A P A' + Q``."""
+    x = A @ x
+    if B is not None and u is not None:
+        x = x + B @ u
+    P = A @ P @ A.T + Q
+    return x, 0.5 * (P + P.T)
+
+
+def _correct(
+    x: FloatArray, P: FloatArray, z: FloatArray, C: FloatArray, R: FloatArray, eye: FloatArray
+) -> tuple[FloatArray, FloatArray]:
+    """Measurement update with the Joseph form (symmetric, PSD under rounding)."""
+    PCt = P @ C.T
+    S = C @ PCt + R
+    K = np.linalg.solve(S, PCt.T).T  # P C' S^{-1}, S symmetric
+    x = x + K @ (z - C @ x)
+    IKC = eye - K @ C
+    P = IKC @ P @ IKC.T + K @ R @ K.T
+    return x, 0.5 * (P + P.T)
+
+
+@dataclass(slots=True)
+class _Step:
+    """What the filter keeps of one step to re-filter from it."""
+
+    t: int
+    x_prior: FloatArray
+    P_prior: FloatArray
+    measurements: list[FloatArray] = field(default_factory=list)
+    A: FloatArray | None = None  # transition used to leave this step (set by predict)
+    Q: FloatArray | None = None
+    u: FloatArray | None = None
+
+
+class IntermittentKalmanFilter:
+    """A Kalman filter for lost, delayed and out-of-sequence measurements.
+
+    Model ``x_{t+1} = A x_t + B u_t + w_t``, ``w_t ~ N(0, Q)``; measurement
+    ``z_s = C x_s + v_s``, ``v_s ~ N(0, R)``, which may arrive at any ``t >= s`` or never.
+
+    Parameters
+    ----------
+    A:
+        State matrix, shape ``(n, n)``; :meth:`predict` may override it per step.
+    C:
+        Measurement matrix, shape ``(p, n)``.
+    Q:
+        Process-noise covariance, shape ``(n, n)``, symmetric PSD.
+    R:
+        Measurement-noise covariance, shape ``(p, p)``, symmetric PSD (``C P C' + R`` must be
+        invertible at every update).
+    B:
+        Input matrix, shape ``(n, m)`` (a 1-D array is a column), or ``None`` without inputs.
+    max_delay_steps:
+        How far back a measurement can still be incorporated exactly: the filter keeps the
+        priors, inputs and measurements of the last ``max_delay_steps + 1`` steps.
+
+    Raises
+    ------
+    ValueError
+        When a matrix has the wrong shape, is not finite or a covariance is not symmetric
+        PSD; the message names the matrix.
+
+    Notes
+    -----
+    Timeline: :meth:`reset` sets the prior of ``x_0`` (``t = 0``); :meth:`update` with
+    ``timestamp = t`` is the usual correction; :meth:`predict` moves to ``t + 1``. A lost
+    measurement is simply never given (prediction only). :attr:`x`, :attr:`P` are the mean and
+    covariance of ``x_t`` given every measurement incorporated so far. An update with
+    ``timestamp = s < t`` inserts the measurement at step ``s`` (after those already there)
+    and re-runs the filter from the stored prior of ``s`` with the stored inputs, so the
+    result equals filtering all measurements in time order. Cost: ``O(t - s)`` steps.
+
+    Examples
+    --------
+    >>> kf = IntermittentKalmanFilter(A=1.2, C=1.0, Q=1.0, R=1.0)
+    >>> kf.reset([0.0], [[1.0]])
+    >>> kf.update([0.5], timestamp=0)
+    True
+    >>> kf.predict()
+    >>> kf.t, kf.x.round(3).tolist(), kf.P.round(3).tolist()
+    (1, [0.3], [[1.72]])
+    """
+
+    def __init__(
+        self,
+        A: ArrayLike,
+        C: ArrayLike,
+        Q: ArrayLike,
+        R: ArrayLike,
+        B: ArrayLike | None = None,
+        *,
+        max_delay_steps: int = 64,
+    ) -> None:
+        self.A, self.C, self.Q, self.R = _model(A, C, Q, R)
+        n = self.A.shape[0]
+        if B is None:
+            self.B: FloatArray | None = None
+        else:
+            B_arr = np.asarray(B, dtype=float)
+            if B_arr.ndim == 1:
+                B_arr = B_arr.reshape(-1, 1)
+            self.B = _matrix("B", B_arr)
+            if self.B.shape[0] != n:
+                raise ValueError(f"B must have {n} rows to match A, got shape {self.B.shape}")
+        if (
+            isinstance(max_delay_steps, bool)
+            or int(max_delay_steps) != max_delay_steps
+            or max_delay_steps < 0
+        ):
+            raise ValueError(f"max_delay_steps must be an integer >= 0, got {max_delay_steps!r}")
+        self.max_delay_steps = int(max_delay_steps)
+        self._eye = np.eye(n)
+        self._history: deque[_Step] = deque(maxlen=self.max_delay_steps + 1)
+        self._x: FloatArray | None = None
+        self._P: FloatArray | None = None
+        self._t = 0
+        self._n_dropped = 0
+
+    @property
+    def n_states(self) -> int:
+        """State dimension ``n``."""
+        return self.A.shape[0]
+
+    @property
+    def n_outputs(self) -> int:
+        """Measurement dimension ``p``."""
+        return self.C.shape[0]
+
+    @property
+    def n_inputs(self) -> int:
+        """Input dimension ``m`` (0 without ``B``)."""
+        return 0 if self.B is None else self.B.shape[1]
+
+    @property
+    def t(self) -> int:
+        """The current step: :attr:`x` estimates ``x_t``."""
+        return self._t
+
+    @property
+    def x(self) -> FloatArray:
+        """Conditional mean of ``x_t``, shape ``(n,)`` (a copy)."""
+        self._require_reset()
+        assert self._x is not None
+        return self._x.copy()
+
+    @property
+    def P(self) -> FloatArray:
+        """Error covariance of :attr:`x`, shape ``(n, n)`` (a copy)."""
+        self._require_reset()
+        assert self._P is not None
+        return self._P.copy()
+
+    @property
+    def oldest_timestamp(self) -> int:
+        """The oldest measurement timestamp :meth:`update` can still incorporate."""
+        return self._history[0].t if self._history else 0
+
+    @property
+    def n_dropped(self) -> int:
+        """Measurements refused since :meth:`reset` because they were older than the window."""
+        return self._n_dropped
+
+    def reset(self, x0: ArrayLike, P0: ArrayLike) -> None:
+        """Start at ``t = 0`` from the prior ``x_0 ~ N(x0, P0)``.
+
+        Parameters
+        ----------
+        x0:
+            Prior mean, shape ``(n,)``.
+        P0:
+            Prior covariance, shape ``(n, n)``, symmetric PSD.
+        """
+        n = self.n_states
+        x = _vector("x0", x0, n)
+        P = _covariance("P0", P0, n)
+        self._history.clear()
+        self._history.append(_Step(0, x, P))
+        self._x, self._P = x, P
+        self._t = 0
+        self._n_dropped = 0
+
+    def predict(
+        self,
+        u: ArrayLike | None = None,
+        *,
+        A: ArrayLike | None = None,
+        Q: ArrayLike | None = None,
+    ) -> None:
+        """Move from ``t`` to ``t + 1`` with the input ``u_t`` (zero when ``None``).
+
+        Parameters
+        ----------
+        u:
+            The input applied during ``[t, t + 1)``, shape ``(m,)``; needs ``B``.
+        A, Q:
+            Time-varying model: the transition and process-noise covariance of this step only
+            (default: the constructor's). They are stored, so re-filtering uses them again.
+        """
+        self._require_reset()
+        n = self.n_states
+        u_t = None
+        if u is not None:
+            if self.B is None:
+                raise ValueError("u was given but the filter has no input matrix B")
+            u_t = _vector("u", u, self.B.shape[1])
+        A_t = self.A if A is None else _matrix("A", A, (n, n))
+        Q_t = self.Q if Q is None else _covariance("Q", Q, n)
+        step = self._history[-1]
+        step.A, step.Q, step.u = A_t, Q_t, u_t
+        assert self._x is not None and self._P is not None
+        self._x, self._P = _predict(self._x, self._P, A_t, Q_t, self.B, u_t)
+        self._t += 1
+        self._history.append(_Step(self._t, self._x, self._P))
+
+    def update(self, z: ArrayLike, timestamp: int) -> bool:
+        """Incorporate the measurement ``z = C x_timestamp + v``.
+
+        Parameters
+        ----------
+        z:
+            The measurement, shape ``(p,)``.
+        timestamp:
+            Its capture step ``s`` with ``0 <= s <= t``; ``t - s`` is its age ``zeta``.
+
+        Returns
+        -------
+        bool
+            ``True`` when incorporated; ``False`` when ``s`` is older than
+            :attr:`oldest_timestamp` (outside the ``max_delay_steps`` window): the
+            measurement is dropped and counted in :attr:`n_dropped`.
+
+        Raises
+        ------
+        ValueError
+            When ``timestamp`` is not an integer in ``[0, t]`` or ``z`` has the wrong shape.
+        """
+        self._require_reset()
+        z_arr = _vector("z", z, self.n_outputs)
+        if isinstance(timestamp, bool) or int(timestamp) != timestamp:
+            raise ValueError(f"timestamp must be an integer, got {timestamp!r}")
+        s = int(timestamp)
+        if s > self._t:
+            raise ValueError(f"timestamp must be <= t = {self._t} (no future data), got {s}")
+        if s < 0:
+            raise ValueError(f"timestamp must be >= 0, got {s}")
+        first = self._history[0].t
+        if s < first:
+            self._n_dropped += 1
+            return False
+        k = s - first
+        self._history[k].measurements.append(z_arr)
+        if s == self._t:
+            assert self._x is not None and self._P is not None
+            self._x, self._P = _correct(self._x, self._P, z_arr, self.C, self.R, self._eye)
+        else:
+            self._refilter(k)
+        return True
+
+    def _refilter(self, k: int) -> None:
+        """Re-run the filter from the stored prior of history entry ``k`` to the present."""
+        steps = self._history
+        x, P = steps[k].x_prior, steps[k].P_prior
+        last = len(steps) - 1
+        for j in range(k, last + 1):
+            step = steps[j]
+            if j > k:
+                step.x_prior, step.P_prior = x, P
+            for z in step.measurements:
+                x, P = _correct(x, P, z, self.C, self.R, self._eye)
+            if j < last:
+                assert step.A is not None and step.Q is not None
+                x, P = _predict(x, P, step.A, step.Q, self.B, step.u)
+        self._x, self._P = x, P
+
+    def _require_reset(self) -> None:
+        if self._x is None:
+            raise RuntimeError("call reset(x0, P0) first")
+
+
+# --------------------------------------------------------------------------- theory
+
+
+def steady_state_covariance(
+    A: ArrayLike, C: ArrayLike, Q: ArrayLike, R: ArrayLike
+) -> tuple[FloatArray, FloatArray]:
+    """Stationary prior and posterior error covariances of the Kalman filter (``q = 1``).
+
+    The prior ``P = A P A' + Q - A P C' (C P C' + R)^{-1} C P A'`` (the filter DARE, as in
+    ``control.dlqe``) and the posterior ``P - P C' (C P C' + R)^{-1} C P``.
+
+    Returns
+    -------
+    tuple of ndarray
+        ``(prior, posterior)``, each of shape ``(n, n)``.
+    """
+    A, C, Q, R = _model(A, C, Q, R)
+    prior = scipy.linalg.solve_discrete_are(A.T, C.T, Q, R)
+    prior = 0.5 * (prior + prior.T)
+    PCt = prior @ C.T
+    posterior = prior - PCt @ np.linalg.solve(C @ PCt + R, PCt.T)
+    return prior, 0.5 * (posterior + posterior.T)
+
+
+def intermittent_riccati(
+    A: ArrayLike,
+    C: ArrayLike,
+    Q: ArrayLike,
+    R: ArrayLike,
+    P0: ArrayLike,
+    arrivals: ArrayLike,
+    *,
+    average: bool = False,
+) -> tuple[FloatArray, FloatArray]:
+    """Error covariances of the filter for a batch of arrival sequences (no delay).
+
+    The random Riccati recursion of Sinopoli et al. (2004) with ``gamma_t`` from ``arrivals``:
+    ``P_{t|t} = P_{t|t-1} - gamma_t K_t C P_{t|t-1}`` and ``P_{t+1|t} = A P_{t|t} A' + Q``,
+    vectorised over the batch; the same arithmetic as :class:`IntermittentKalmanFilter` fed
+    ``z_t`` at ``t`` when ``gamma_t = 1``.
+
+    Parameters
+    ----------
+    A, C, Q, R:
+        The model, as in :class:`IntermittentKalmanFilter`.
+    P0:
+        Prior covariance of ``x_0``, shape ``(n, n)``.
+    arrivals:
+        ``gamma``, boolean, shape ``(T,)`` or ``(N, T)`` (``N`` sequences of ``T`` steps).
+    average:
+        Return the mean over the ``N`` sequences (a Monte-Carlo estimate of ``E[P_t]``)
+        instead of every sequence; memory is then independent of ``N``.
+
+    Returns
+    -------
+    priors : ndarray
+        ``P_{t|t-1}`` for ``t = 0..T``, shape ``(N, T + 1, n, n)``; without the leading
+        axis when ``arrivals`` is 1-D or ``average`` is set.
+    posteriors : ndarray
+        ``P_{t|t}`` for ``t = 0..T-1``, shape ``(N, T, n, n)``, likewise.
+    """
+    A, C, Q, R = _model(A, C, Q, R)
+    n = A.shape[0]
+    P_init = _covariance("P0", P0, n)
+    gamma = np.asarray(arrivals)
+    if gamma.dtype != bool:
+        if not np.all((gamma == 0) | (gamma == 1)):
+            raise ValueError("arrivals must hold booleans (or 0/1)")
+        gamma = gamma.astype(bool)
+    single = gamma.ndim == 1
+    if single:
+        gamma = gamma[None, :]
+    if gamma.ndim != 2:
+        raise ValueError(f"arrivals must have shape (T,) or (N, T), got {gamma.shape}")
+    N, T = gamma.shape
+    P = np.broadcast_to(P_init, (N, n, n)).copy()
+    eye = np.eye(n)
+    if average:
+        priors = np.empty((T + 1, n, n))
+        posteriors = np.empty((T, n, n))
+        priors[0] = P_init
+    else:
+        priors = np.empty((N, T + 1, n, n))
+        posteriors = np.empty((N, T, n, n))
+        priors[:, 0] = P
+    for t in range(T):
+        rows = gamma[:, t]
+        if rows.any():
+            Pg = P[rows]
+            PCt = Pg @ C.T
+            S = C @ PCt + R
+            K = np.swapaxes(np.linalg.solve(S, np.swapaxes(PCt, 1, 2)), 1, 2)
+            IKC = eye - K @ C
+            Pg = IKC @ Pg @ np.swapaxes(IKC, 1, 2) + K @ R @ np.swapaxes(K, 1, 2)
+            P[rows] = 0.5 * (Pg + np.swapaxes(Pg, 1, 2))
+        if average:
+            posteriors[t] = P.mean(axis=0)
+        else:
+            posteriors[:, t] = P
+        P = A @ P @ A.T + Q
+        P = 0.5 * (P + np.swapaxes(P, 1, 2))
+        if average:
+            priors[t + 1] = P.mean(axis=0)
+        else:
+            priors[:, t + 1] = P
+    if single and not average:
+        return priors[0], posteriors[0]
+    return priors, posteriors
+
+
+def critical_arrival_lower_bound(A: ArrayLike) -> float:
+    """Sinopoli et al.'s lower bound ``1 - 1/max|lambda_i(A)|^2`` on the critical probability.
+
+    Below it ``E[P_t]`` diverges for some initial condition; 0 for a stable ``A``. Exact (the
+    critical value itself) when ``C`` is invertible.
+    """
+    A = _matrix("A", A)
+    rho = float(np.max(np.abs(np.linalg.eigvals(A))))
+    return max(0.0, 1.0 - 1.0 / rho**2)
+
+
+def critical_arrival_bounds(
+    A: ArrayLike, C: ArrayLike, *, tol: float = 1e-4, margin: float = 1e-7
+) -> tuple[float, float]:
+    """Lower and upper bounds on the critical arrival probability ``q_c`` (Sinopoli 2004).
+
+    ``E[P_t]`` is bounded for every initial condition iff ``q > q_c`` (Theorem 2). The lower
+    bound is :func:`critical_arrival_lower_bound`; the upper bound is the smallest ``q`` for
+    which the LMI of Theorem 5 is feasible::
+
+        Psi_q(Y, Z) = [[Y,              sqrt(q) (Y A + Z C), sqrt(1 - q) Y A],
+                       [sqrt(q) (.)',   Y,                   0              ],
+                       [sqrt(1 - q) (.)', 0,                 Y              ]] > 0,
+        0 <= Y <= I,
+
+    found by bisection to ``tol`` with ``Psi >= margin * I`` standing for the strict
+    inequality (cvxpy, Clarabel). Both bounds coincide when ``C`` is invertible.
+
+    Returns
+    -------
+    tuple of float
+        ``(lower, upper)``; ``upper`` is ``inf`` when ``(A, C)`` is not detectable.
+    """
+    import cvxpy as cp
+
+    A = _matrix("A", A)
+    n = A.shape[0]
+    if A.shape != (n, n):
+        raise ValueError(f"A must be square, got shape {A.shape}")
+    C = _matrix("C", C)
+    if C.shape[1] != n:
+        raise ValueError(f"C must have {n} columns to match A, got shape {C.shape}")
+    if not (math.isfinite(tol) and tol > 0.0):
+        raise ValueError(f"tol must be > 0, got {tol!r}")
+    lower = critical_arrival_lower_bound(A)
+    if lower == 0.0:
+        return 0.0, 0.0
+    p = C.shape[0]
+    Y = cp.Variable((n, n), symmetric=True)
+    Z = cp.Variable((n, p))
+    sq = cp.Parameter(nonneg=True)
+    sr = cp.Parameter(nonneg=True)
+    zero = np.zeros((n, n))
+    gain = Y @ A + Z @ C
+    psi = cp.bmat(
+        [
+            [Y, sq * gain, sr * (Y @ A)],
+            [sq * gain.T, Y, zero],
+            [sr * (Y @ A).T, zero, Y],
+        ]
+    )
+    psi = 0.5 * (psi + psi.T)
+    problem = cp.Problem(
+        cp.Minimize(0),
+        [psi >> margin * np.eye(3 * n), Y >> 0, np.eye(n) - Y >> 0],
+    )
+
+    def feasible(q: float) -> bool:
+        sq.value, sr.value = math.sqrt(q), math.sqrt(1.0 - q)
+        try:
+            problem.solve(solver=cp.CLARABEL)
+        except cp.error.SolverError:
+            return False
+        return problem.status in (cp.OPTIMAL, cp.OPTIMAL_INACCURATE)
+
+    if not feasible(1.0):
+        return lower, math.inf
+    lo, hi = lower, 1.0
+    while hi - lo > tol:
+        mid = 0.5 * (lo + hi)
+        if feasible(mid):
+            hi = mid
+        else:
+            lo = mid
+    return lower, hi
+
+
+def expected_covariance_bounds(
+    A: ArrayLike,
+    C: ArrayLike,
+    Q: ArrayLike,
+    R: ArrayLike,
+    q: float,
+    *,
+    max_iter: int = 100_000,
+    rtol: float = 1e-12,
+) -> tuple[FloatArray, FloatArray]:
+    """Bounds ``S <= lim E[P_{t|t-1}] <= V`` for arrivals ``~ Bernoulli(q)`` (Sinopoli Thm 3-4).
+
+    ``S`` solves ``S = (1 - q) A S A' + Q`` (exists iff ``(1 - q) max|lambda(A)|^2 < 1``);
+    ``V`` is the fixed point of the modified algebraic Riccati equation
+    ``V = A V A' + Q - q A V C' (C V C' + R)^{-1} C V A'`` reached by iteration from ``Q``.
+    A bound that does not exist (the iteration diverges or fails to converge in ``max_iter``
+    steps) is returned filled with ``inf``.
+
+    Returns
+    -------
+    tuple of ndarray
+        ``(lower, upper)``, each of shape ``(n, n)``.
+    """
+    A, C, Q, R = _model(A, C, Q, R)
+    q = float(q)
+    if not (math.isfinite(q) and 0.0 <= q <= 1.0):
+        raise ValueError(f"q must be in [0, 1], got {q!r}")
+    n = A.shape[0]
+    infinite = np.full((n, n), np.inf)
+    rho = float(np.max(np.abs(np.linalg.eigvals(A))))
+    if (1.0 - q) * rho**2 < 1.0:
+        lower = scipy.linalg.solve_discrete_lyapunov(math.sqrt(1.0 - q) * A, Q)
+        lower = 0.5 * (lower + lower.T)
+    else:
+        lower = infinite.copy()
+    V = Q.copy()
+    upper = infinite.copy()
+    for _ in range(max_iter):
+        AV = A @ V
+        S = C @ V @ C.T + R
+        V_next = AV @ A.T + Q - q * AV @ C.T @ np.linalg.solve(S, C @ AV.T)
+        V_next = 0.5 * (V_next + V_next.T)
+        size = float(np.max(np.abs(V_next)))
+        if not math.isfinite(size) or size > 1e15:
+            break
+        if np.max(np.abs(V_next - V)) <= rtol * max(1.0, size):
+            upper = V_next
+            break
+        V = V_next
+    return lower, upper
+
+
+# --------------------------------------------------------------------------- estimator
+
+
+class KalmanEstimator:
+    """The :class:`IntermittentKalmanFilter` as an :class:`~codesign_mb.estimation.Estimator`.
+
+    For a :class:`~codesign_mb.plants.linear.LinearPlantEnv` behind a
+    :class:`~codesign_mb.network.LinkObservationWrapper`: the networked observation is
+    ``(y_t, zeta_t)`` with ``y_t = z_{t - zeta_t}`` (``eq_output``). A timestamp
+    ``t - zeta_t`` newer than the last one used means a new measurement, which updates the
+    filter at that step (``eq_time``); the applied action drives the prediction.
+
+    Parameters
+    ----------
+    plant:
+        The plant model (``A``, ``B``, ``C``, ``W``, ``V``).
+    x0_mean, x0_cov:
+        Prior of ``x_0``, shapes ``(n,)`` and ``(n, n)``.
+    max_delay_steps:
+        The filter's re-filtering window.
+    link_wrapper:
+        When given, every packet that arrived at a step (``Reception.arrivals`` of
+        ``link_wrapper.last_reception``) is incorporated, including out-of-sequence ones
+        that the observation hides because a fresher packet arrived first.
+
+    Notes
+    -----
+    The returned estimate is the state estimate ``x_hat_{t|t}`` (shape ``(n,)``): for a
+    linear plant the ideal controller (LQR) acts on the state, and the remote quantity the
+    measurement carries is the state. With the factories' ``C = [I_p 0]`` its first ``p``
+    entries estimate the noise-free measurement, which the rollout compares with ``z_t``.
+    """
+
+    def __init__(
+        self,
+        plant: LinearPlantSpec,
+        *,
+        x0_mean: ArrayLike,
+        x0_cov: ArrayLike,
+        max_delay_steps: int = 64,
+        link_wrapper: LinkObservationWrapper | None = None,
+    ) -> None:
+        self.plant = plant
+        self.filter = IntermittentKalmanFilter(
+            plant.A, plant.C, plant.W, plant.V, plant.B, max_delay_steps=max_delay_steps
+        )
+        self.x0_mean = _vector("x0_mean", x0_mean, plant.n_states)
+        self.x0_cov = _covariance("x0_cov", x0_cov, plant.n_states)
+        self.link_wrapper = link_wrapper
+        self._t = 0
+        self._last_timestamp = PRIOR_TIMESTAMP
+
+    @classmethod
+    def for_env(
+        cls, env: gym.Env, *, max_delay_steps: int = 64, use_arrivals: bool = True
+    ) -> KalmanEstimator:
+        """The estimator matched to ``env``: its plant and initial-state distribution.
+
+        ``env`` is a :class:`LinearPlantEnv` or a wrapper chain around one; with
+        ``use_arrivals`` and a :class:`LinkObservationWrapper` in the chain, every arrived
+        packet is used (see ``link_wrapper``).
+        """
+        plant_env = env.unwrapped
+        if not isinstance(plant_env, LinearPlantEnv):
+            raise TypeError(f"env must wrap a LinearPlantEnv, got {type(plant_env).__name__}")
+        wrapper = None
+        if use_arrivals:
+            layer: gym.Env = env
+            while isinstance(layer, gym.Wrapper):
+                if isinstance(layer, LinkObservationWrapper):
+                    wrapper = layer
+                    break
+                layer = layer.env
+        return cls(
+            plant_env.plant,
+            x0_mean=plant_env.x0_mean,
+            x0_cov=plant_env.x0_cov,
+            max_delay_steps=max_delay_steps,
+            link_wrapper=wrapper,
+        )
+
+    def reset(self, observation: NDArray[np.float64]) -> FloatArray:
+        self.filter.reset(self.x0_mean, self.x0_cov)
+        self._t = 0
+        self._last_timestamp = PRIOR_TIMESTAMP
+        self._ingest(observation)
+        return self.filter.x
+
+    def estimate(self, observation: NDArray[np.float64], action: NDArray[np.float64]) -> FloatArray:
+        self.filter.predict(action)
+        self._t += 1
+        self._ingest(observation)
+        return self.filter.x
+
+    def _ingest(self, observation: NDArray[np.float64]) -> None:
+        y, age = split_networked_observation(observation)
+        if self.link_wrapper is not None:
+            rx = self.link_wrapper.last_reception
+            if rx is None or rx.t != self._t:
+                raise RuntimeError(
+                    "link_wrapper's last reception is not the current step; pass the wrapper "
+                    "the rollout steps, or none"
+                )
+            for packet in rx.arrivals:
+                if packet.timestamp >= 0:
+                    self.filter.update(packet.value, packet.timestamp)
+            return
+        timestamp = self._t - age  # eq_time
+        if timestamp > self._last_timestamp:
+            self.filter.update(y, timestamp)
+            self._last_timestamp = timestamp
