@@ -1,0 +1,351 @@
+"""What every ``codesign`` command shares: readable errors, output, progress, config files.
+
+A command module uses these four helpers and the option types below::
+
+    from codesign_mb.cli.common import (
+        ConfigOption,
+        JsonOption,
+        SeedOption,
+        cli_errors,
+        emit,
+        load_config,
+        track,
+    )
+
+
+    def register(app: typer.Typer) -> None:
+        @app.command()
+        @cli_errors
+        def demo(
+            config: ConfigOption = None,
+            seed: SeedOption = 0,
+            as_json: JsonOption = False,
+            reliability: float | None = typer.Option(None, help="q in [0, 1]."),
+        ) -> None:
+            cfg = load_config(DemoConfig, config, {"reliability": reliability, "seed": seed})
+            rows = [
+                run(cfg, k) for k in track(range(10), total=10, description="demo", disable=as_json)
+            ]
+            emit(rows, as_json=as_json, title="demo")
+
+Conventions
+-----------
+- Errors of the user (bad values, unknown config keys, missing files) are ``ValueError``
+  (or ``TypeError``/``OSError``) raised anywhere below the command; :func:`cli_errors` turns
+  them into one line ``error: <message>`` on stderr and exit code 2. Any other exception is a
+  bug and keeps its traceback. ``CODESIGN_DEBUG=1`` re-raises user errors too.
+- Results go to stdout (:func:`emit`: a rich table, or JSON with ``--json``); progress and
+  notes go to stderr, so ``codesign ... --json | jq`` always sees pure JSON.
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+import os
+import sys
+from collections.abc import Callable, Iterable, Iterator, Mapping
+from pathlib import Path
+from typing import Annotated, Any, ParamSpec, TypeVar
+
+import typer
+
+from codesign_mb.config import from_mapping, load_config_file
+
+__all__ = [
+    "ConfigOption",
+    "JsonOption",
+    "OutOption",
+    "SeedOption",
+    "cli_errors",
+    "emit",
+    "explicit",
+    "load_config",
+    "note",
+    "track",
+]
+
+P = ParamSpec("P")
+R = TypeVar("R")
+T = TypeVar("T")
+
+USAGE_ERROR_EXIT_CODE = 2
+"""Exit code of a command stopped by bad input (the same as click's usage errors)."""
+
+_USER_ERRORS: tuple[type[BaseException], ...] = (ValueError, TypeError, OSError)
+
+ConfigOption = Annotated[
+    Path | None,
+    typer.Option(
+        "--config",
+        "-c",
+        help="TOML (.toml) or YAML (.yaml/.yml) config file; unknown keys are an error. "
+        "Options given on the command line override it.",
+        dir_okay=False,
+    ),
+]
+SeedOption = Annotated[
+    int,
+    typer.Option("--seed", help="Root random seed; every stream is spawned from it."),
+]
+JsonOption = Annotated[
+    bool,
+    typer.Option("--json", help="Print machine-readable JSON on stdout (no table, no progress)."),
+]
+OutOption = Annotated[
+    Path,
+    typer.Option("--out", "-o", help="Results folder (created if missing).", file_okay=False),
+]
+
+
+def cli_errors(func: Callable[P, R]) -> Callable[P, R]:
+    """Decorate a typer command so user errors read as one line, not a traceback.
+
+    ``ValueError``, ``TypeError`` and ``OSError`` (missing file, permission) raised by the
+    command are printed as ``error: <message>`` on stderr (newlines folded) and the command
+    exits with code 2. ``typer.Exit``/``typer.Abort`` pass through; any other exception is a
+    bug and propagates with its traceback. Set ``CODESIGN_DEBUG=1`` to re-raise everything.
+
+    Put it *below* ``@app.command()``: it keeps the signature (``functools.wraps``), so typer
+    still sees the options.
+    """
+
+    @functools.wraps(func)
+    def wrapper(*args: P.args, **kwargs: P.kwargs) -> R:
+        try:
+            return func(*args, **kwargs)
+        except _USER_ERRORS as exc:
+            if os.environ.get("CODESIGN_DEBUG"):
+                raise
+            typer.echo(f"error: {_one_line(exc)}", err=True)
+            raise typer.Exit(code=USAGE_ERROR_EXIT_CODE) from None
+
+    return wrapper
+
+
+def _one_line(exc: BaseException) -> str:
+    cause = getattr(exc, "cause", None)  # Ray wraps a remote task's error (RayTaskError)
+    if isinstance(cause, BaseException):
+        exc = cause
+    if isinstance(exc, OSError) and exc.strerror and exc.filename is not None:
+        message = f"{exc.strerror}: {exc.filename!s}"
+    else:
+        message = str(exc) or type(exc).__name__
+    return " ".join(message.split())
+
+
+def note(message: str) -> None:
+    """Print a human note (e.g. "results written to out/") on stderr, never mixed with JSON."""
+    typer.echo(message, err=True)
+
+
+def emit(data: Any, *, as_json: bool, title: str | None = None) -> None:
+    """Print a command's result on stdout: JSON (``as_json``) or a rich table.
+
+    ``data`` may be a mapping (shown as a key/value table, nested mappings flattened with
+    dotted keys), a sequence of mappings or a ``pandas.DataFrame`` (one row each), or a
+    scalar/string (printed as is). JSON output is ``json.dumps`` of :func:`to_jsonable`.
+    """
+    from codesign_mb.evaluation.results import to_jsonable
+
+    plain = to_jsonable(data)
+    if as_json:
+        sys.stdout.write(json.dumps(plain, indent=2, sort_keys=False) + "\n")
+        sys.stdout.flush()
+        return
+    from rich.console import Console
+    from rich.table import Table
+
+    console = Console(soft_wrap=True)
+    if isinstance(plain, dict):
+        table = Table(title=title, show_header=True)
+        table.add_column("key", style="bold")
+        table.add_column("value")
+        for key, value in _flatten(plain).items():
+            table.add_row(key, _cell(value))
+        console.print(table)
+    elif isinstance(plain, list) and plain and all(isinstance(r, dict) for r in plain):
+        rows = [_flatten(r) for r in plain]
+        columns: list[str] = []
+        for row in rows:
+            columns.extend(k for k in row if k not in columns)
+        table = Table(title=title, show_header=True)
+        for column in columns:
+            table.add_column(column)
+        for row in rows:
+            table.add_row(*(_cell(row.get(c)) for c in columns))
+        console.print(table)
+    else:
+        if title:
+            console.print(f"[bold]{title}[/bold]")
+        console.print(plain if isinstance(plain, str) else json.dumps(plain, indent=2))
+
+
+def _flatten(data: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
+    flat: dict[str, Any] = {}
+    for key, value in data.items():
+        name = f"{prefix}{key}"
+        if isinstance(value, Mapping) and value:
+            flat.update(_flatten(value, f"{name}."))
+        else:
+            flat[name] = value
+    return flat
+
+
+def _cell(value: Any) -> str:
+    if value is None:
+        return ""
+    if isinstance(value, float):
+        return f"{value:.6g}"
+    if isinstance(value, list):
+        return ", ".join(_cell(v) for v in value)
+    return str(value)
+
+
+def track(
+    iterable: Iterable[T],
+    *,
+    total: int | None = None,
+    description: str = "working",
+    disable: bool = False,
+) -> Iterator[T]:
+    """Iterate with a rich progress bar on stderr.
+
+    The bar is off when ``disable`` (pass ``disable=as_json``), when stderr is not a terminal
+    (pipes, CI, tests) or when ``CODESIGN_NO_PROGRESS`` is set; then this is plain iteration.
+    ``total`` defaults to ``len(iterable)`` when it has one.
+    """
+    if total is None and hasattr(iterable, "__len__"):
+        total = len(iterable)  # type: ignore[arg-type]
+    if disable or os.environ.get("CODESIGN_NO_PROGRESS") or not sys.stderr.isatty():
+        yield from iterable
+        return
+    from rich.console import Console
+    from rich.progress import (
+        BarColumn,
+        MofNCompleteColumn,
+        Progress,
+        TextColumn,
+        TimeElapsedColumn,
+        TimeRemainingColumn,
+    )
+
+    with Progress(
+        TextColumn("[progress.description]{task.description}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TimeElapsedColumn(),
+        TimeRemainingColumn(),
+        console=Console(stderr=True),
+        transient=False,
+    ) as progress:
+        task = progress.add_task(description, total=total)
+        for item in iterable:
+            yield item
+            progress.advance(task)
+
+
+def explicit(
+    ctx: typer.Context | None,
+    values: Mapping[str, Any],
+    *,
+    rename: Mapping[str, str] | None = None,
+) -> dict[str, Any]:
+    """The options the user actually gave, as config overrides for :func:`load_config`.
+
+    ``values`` maps command parameter names to their values. Options left at their default
+    are dropped, so a config file is not overridden by a default the user never typed, while
+    ``--help`` still shows the defaults. ``rename`` maps a parameter name to a (dotted) config
+    key, e.g. ``{"reliability": "link.reliability"}``. ``None`` values are always dropped;
+    a key that is not a parameter of the command, or any key with ``ctx=None`` (outside a
+    command), counts as given when not ``None``.
+
+    Examples
+    --------
+    A command takes ``ctx: typer.Context`` as its first parameter (typer injects it), then::
+
+        cfg = load_config(SweepConfig, config, explicit(ctx, {"n_seeds": n_seeds}))
+    """
+    given: dict[str, Any] = {}
+    for name, value in values.items():
+        if value is None:
+            continue
+        if ctx is not None:
+            source = ctx.get_parameter_source(name)
+            # Compared by name: typer may vendor its own click. A key that is not a parameter
+            # of the command (source None) counts as given.
+            if getattr(source, "name", "") in ("DEFAULT", "DEFAULT_MAP"):
+                continue
+        given[(rename or {}).get(name, name)] = value
+    return given
+
+
+def load_config(
+    cls: type[T],
+    config_path: str | Path | None,
+    overrides: Mapping[str, Any] | None = None,
+    *,
+    section: str | None = None,
+) -> T:
+    """Build the config dataclass ``cls`` from a file and command-line overrides.
+
+    Parameters
+    ----------
+    cls:
+        A (frozen) config dataclass; validation is its ``__post_init__``.
+    config_path:
+        TOML or YAML file, or ``None`` for the dataclass defaults. Unknown keys are an error
+        (:func:`codesign_mb.config.from_mapping`), so a misspelt option fails.
+    overrides:
+        Values from the command line, applied on top of the file. ``None`` values mean "not
+        given" and are skipped; a dotted key ``"link.reliability"`` sets a nested field.
+    section:
+        If given and the file has a top-level table of that name, only that table is used
+        (one file can then configure several commands: ``[sweep]``, ``[evaluate]``, ...);
+        other top-level entries must then be tables too.
+
+    Raises
+    ------
+    ValueError
+        Unknown keys, a missing or malformed file, or a value the dataclass rejects.
+    """
+    data: dict[str, Any] = {}
+    source = ""
+    if config_path is not None:
+        path = Path(config_path)
+        data = load_config_file(path)
+        source = str(path)
+        if section is not None and isinstance(data.get(section), Mapping):
+            # Other tables may configure other commands; a bare key next to them is a typo.
+            stray = sorted(
+                k for k, v in data.items() if k != section and not isinstance(v, Mapping)
+            )
+            if stray:
+                raise ValueError(
+                    f"key{'s' if len(stray) > 1 else ''} {', '.join(map(repr, stray))} outside "
+                    f"any table in config file {str(path)!r}; put "
+                    f"{'them' if len(stray) > 1 else 'it'} under [{section}]"
+                )
+            data = dict(data[section])
+            source = f"[{section}] of {path}"
+    for key, value in (overrides or {}).items():
+        if value is None:
+            continue
+        _set_dotted(data, key, value)
+    try:
+        return from_mapping(cls, data)
+    except ValueError as exc:
+        if source and str(exc).startswith("unknown key"):
+            raise ValueError(f"{exc} (config file {source})") from exc
+        raise
+
+
+def _set_dotted(data: dict[str, Any], key: str, value: Any) -> None:
+    *parents, leaf = key.split(".")
+    node = data
+    for part in parents:
+        child = node.get(part)
+        child = dict(child) if isinstance(child, Mapping) else {}
+        node[part] = child
+        node = child
+    node[leaf] = list(value) if isinstance(value, tuple) else value

@@ -1,0 +1,666 @@
+"""Sweeps over a grid of trials, on local processes or a Ray cluster, resumable.
+
+A sweep is the grid ``pipelines x belt speeds x robot counts x replicates`` of one
+*scenario*. Every grid point is one **trial**: a pure, picklable call
+``run_trial(config: TrialConfig, seed: int) -> dict`` returning one table row. The same
+trials give the same table whichever backend ran them:
+
+- ``"serial"``: in this process (debugging, tiny sweeps);
+- ``"local"`` (default): a ``spawn`` process pool on this machine;
+- ``"ray"``: ``ray.remote`` tasks on ``ray.init(address=...)`` (a cluster), or on a local Ray
+  instance when no address is given. The cluster's nodes need ``codesign_mb`` installed.
+
+Seeds
+-----
+Trial seeds come from ``numpy.random.SeedSequence(seed).spawn(n_seeds)``: replicate ``r``
+gets the same seed at every grid point (common random numbers), so pipelines, belt speeds
+and robot counts are compared on the same draws.
+
+Resuming
+--------
+The driver stores each finished trial as one small JSON file
+``<out_dir>/.trials/<name>/<key>.json`` (written atomically) as soon as it returns. The key
+hashes everything the row depends on (scenario, its params, grid point, seed), so rerunning
+an interrupted sweep only computes the missing trials, and changing a parameter never reuses
+stale rows. The table is always assembled from the stored rows, in grid order, and written
+with :func:`~codesign_mb.evaluation.results.write_results` as ``<out_dir>/<name>.*``.
+
+Scenarios
+---------
+A scenario is a module (registered in :data:`SCENARIOS`, or any importable module path)
+defining:
+
+``run_trial(config: TrialConfig, seed: int) -> dict[str, scalar]``
+    One trial, pure (everything random comes from ``seed``), returning the metrics of one
+    row (floats, ints, bools, strings). The grid columns are added by the sweep.
+``Params``
+    A frozen, default-constructible dataclass of the scenario's settings;
+    :attr:`SweepConfig.params` is parsed into it strictly (unknown keys are an error).
+``PIPELINES``
+    The pipeline names the scenario accepts; ``SweepConfig.pipelines = ()`` means
+    ``DEFAULT_PIPELINES`` if the module defines it, else all.
+
+Built in: ``"linear"`` (:mod:`codesign_mb.evaluation.sweep_linear`, LQG over a Bernoulli
+link, milliseconds per trial). ``"conveyor"`` is reserved for the MuJoCo pick-and-place
+pipelines (module ``codesign_mb.pipeline.sweep``, written by the pipeline parts).
+
+Ray Tune
+--------
+:func:`tune_hyperparameters` runs a training-hyperparameter search with Ray Tune around any
+``trainable(config: dict) -> dict`` (e.g. a training stage of :mod:`codesign_mb.pipeline`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import importlib
+import json
+import os
+from collections.abc import Callable, Iterable, Iterator, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from types import ModuleType
+from typing import Any, Literal
+
+import numpy as np
+import pandas as pd
+
+from codesign_mb.config import from_mapping, to_mapping
+from codesign_mb.evaluation.results import atomic_write, to_jsonable, write_results
+
+__all__ = [
+    "GRID_COLUMNS",
+    "SCENARIOS",
+    "SweepConfig",
+    "SweepResult",
+    "TrialConfig",
+    "TrialStore",
+    "execute_trial",
+    "plan_sweep",
+    "run_sweep",
+    "trial_seeds",
+    "tune_hyperparameters",
+]
+
+Backend = Literal["serial", "local", "ray"]
+BACKENDS: tuple[str, ...] = ("serial", "local", "ray")
+
+SCENARIOS: dict[str, str] = {
+    "linear": "codesign_mb.evaluation.sweep_linear",
+    "conveyor": "codesign_mb.pipeline.sweep",
+}
+"""Scenario name -> module defining ``run_trial``, ``Params`` and ``PIPELINES``."""
+
+GRID_COLUMNS: tuple[str, ...] = (
+    "scenario",
+    "pipeline",
+    "belt_speed_mps",
+    "n_robots",
+    "replicate",
+    "seed",
+)
+"""The columns every sweep row starts with (added by the sweep, not by ``run_trial``)."""
+
+Scalar = float | int | bool | str | None
+
+
+@dataclass(frozen=True)
+class TrialConfig:
+    """One grid point of a sweep: what ``run_trial(config, seed)`` receives.
+
+    Attributes
+    ----------
+    scenario:
+        Scenario name (or module path).
+    pipeline:
+        Pipeline name, one of the scenario's ``PIPELINES``.
+    belt_speed_mps:
+        Conveyor belt speed in m/s.
+    n_robots:
+        Number of robots sharing the network.
+    replicate:
+        Replicate index in ``[0, n_seeds)``; the seed is derived from it.
+    params:
+        The scenario's ``Params`` instance (frozen dataclass).
+    """
+
+    scenario: str
+    pipeline: str
+    belt_speed_mps: float
+    n_robots: int
+    replicate: int
+    params: Any = None
+
+
+@dataclass(frozen=True)
+class SweepConfig:
+    """A sweep grid (``codesign sweep``; config file table ``[sweep]`` or top level).
+
+    Attributes
+    ----------
+    scenario:
+        Registered scenario (``linear``, ``conveyor``) or an importable module path.
+    name:
+        Table name in the results folder.
+    seed:
+        Root seed; replicate seeds are spawned from it.
+    n_seeds:
+        Replicates per grid point (>= 1).
+    belt_speeds_mps:
+        Belt speeds in m/s (>= 0).
+    robot_counts:
+        Numbers of robots sharing the network (>= 1).
+    pipelines:
+        Pipelines to compare; empty means all of the scenario's.
+    params:
+        Scenario settings, parsed strictly into the scenario's ``Params``.
+    """
+
+    scenario: str = "linear"
+    name: str = "sweep"
+    seed: int = 0
+    n_seeds: int = 3
+    belt_speeds_mps: tuple[float, ...] = (0.2, 0.6)
+    robot_counts: tuple[int, ...] = (1,)
+    pipelines: tuple[str, ...] = ()
+    params: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        _require_int("seed", self.seed, minimum=0)
+        _require_int("n_seeds", self.n_seeds, minimum=1)
+        if not isinstance(self.scenario, str) or not self.scenario:
+            raise ValueError(f"scenario must be a non-empty string, got {self.scenario!r}")
+        if not isinstance(self.name, str) or not self.name:
+            raise ValueError(f"name must be a non-empty string, got {self.name!r}")
+        speeds = tuple(_as_tuple("belt_speeds_mps", self.belt_speeds_mps))
+        counts = tuple(_as_tuple("robot_counts", self.robot_counts))
+        pipelines = tuple(_as_tuple("pipelines", self.pipelines))
+        if not speeds:
+            raise ValueError("belt_speeds_mps must not be empty")
+        for v in speeds:
+            if isinstance(v, bool) or not isinstance(v, int | float) or not np.isfinite(v):
+                raise ValueError(f"belt_speeds_mps must hold numbers, got {v!r}")
+            if v < 0:
+                raise ValueError(f"belt_speeds_mps must be >= 0, got {v!r}")
+        if not counts:
+            raise ValueError("robot_counts must not be empty")
+        for n in counts:
+            _require_int("robot_counts", n, minimum=1)
+        for p in pipelines:
+            if not isinstance(p, str) or not p:
+                raise ValueError(f"pipelines must hold non-empty strings, got {p!r}")
+        for label, values in (
+            ("belt_speeds_mps", speeds),
+            ("robot_counts", counts),
+            ("pipelines", pipelines),
+        ):
+            if len(set(values)) != len(values):
+                raise ValueError(f"{label} has duplicates: {list(values)!r}")
+        if not isinstance(self.params, Mapping):
+            raise ValueError(f"params must be a table, got {self.params!r}")
+        object.__setattr__(self, "belt_speeds_mps", tuple(float(v) for v in speeds))
+        object.__setattr__(self, "robot_counts", tuple(int(n) for n in counts))
+        object.__setattr__(self, "pipelines", pipelines)
+        object.__setattr__(self, "params", dict(self.params))
+
+
+def _require_int(name: str, value: Any, *, minimum: int) -> None:
+    if isinstance(value, bool) or not isinstance(value, int | np.integer):
+        raise ValueError(f"{name} must be an integer, got {value!r}")
+    if value < minimum:
+        raise ValueError(f"{name} must be >= {minimum}, got {value!r}")
+
+
+def _as_tuple(name: str, value: Any) -> tuple[Any, ...]:
+    if isinstance(value, str) or not isinstance(value, Iterable):
+        raise ValueError(f"{name} must be a list, got {value!r}")
+    return tuple(value)
+
+
+# --------------------------------------------------------------------------- scenarios
+
+
+def _scenario_module_name(scenario: str) -> str:
+    return SCENARIOS.get(scenario, scenario)
+
+
+def load_scenario(scenario: str) -> ModuleType:
+    """Import the scenario module; a readable ``ValueError`` when it does not exist (yet)."""
+    module_name = _scenario_module_name(scenario)
+    try:
+        module = importlib.import_module(module_name)
+    except ModuleNotFoundError as exc:
+        if exc.name is None or not module_name.startswith(exc.name):
+            raise  # a dependency missing inside an existing scenario module: a real bug
+        if scenario in SCENARIOS:
+            raise ValueError(
+                f"scenario {scenario!r} is not available: module {module_name!r} does not exist yet"
+            ) from None
+        raise ValueError(
+            f"unknown scenario {scenario!r}; expected one of {', '.join(SCENARIOS)} "
+            "or an importable module path"
+        ) from None
+    missing = [a for a in ("run_trial", "Params", "PIPELINES") if not hasattr(module, a)]
+    if missing:
+        raise ValueError(f"scenario module {module_name!r} does not define {', '.join(missing)}")
+    return module
+
+
+def trial_seeds(seed: int, n_seeds: int) -> list[int]:
+    """Replicate seeds: one 32-bit integer per ``SeedSequence(seed).spawn(n_seeds)`` child."""
+    children = np.random.SeedSequence(seed).spawn(n_seeds)
+    return [int(child.generate_state(1, dtype=np.uint32)[0]) for child in children]
+
+
+def plan_sweep(config: SweepConfig) -> list[tuple[TrialConfig, int]]:
+    """The trials of ``config`` in grid order, with their seeds (validates the scenario).
+
+    Order: pipelines (as configured), then belt speeds, robot counts, replicates.
+    """
+    module = load_scenario(config.scenario)
+    known = tuple(module.PIPELINES)
+    pipelines = config.pipelines or tuple(getattr(module, "DEFAULT_PIPELINES", known))
+    unknown = [p for p in pipelines if p not in known]
+    if unknown:
+        raise ValueError(
+            f"unknown pipeline{'s' if len(unknown) > 1 else ''} {', '.join(map(repr, unknown))} "
+            f"for scenario {config.scenario!r}; expected one of {', '.join(known)}"
+        )
+    params = from_mapping(module.Params, config.params, where="params")
+    seeds = trial_seeds(config.seed, config.n_seeds)
+    return [
+        (TrialConfig(config.scenario, p, v, n, r, params), seeds[r])
+        for p in pipelines
+        for v in config.belt_speeds_mps
+        for n in config.robot_counts
+        for r in range(config.n_seeds)
+    ]
+
+
+def trial_key(trial: TrialConfig, seed: int) -> str:
+    """A stable hash of everything a trial's row depends on (file name of the stored row)."""
+    params = to_mapping(trial.params) if dataclasses.is_dataclass(trial.params) else trial.params
+    ident = {
+        "scenario": _scenario_module_name(trial.scenario),
+        "pipeline": trial.pipeline,
+        "belt_speed_mps": trial.belt_speed_mps,
+        "n_robots": trial.n_robots,
+        "replicate": trial.replicate,
+        "seed": seed,
+        "params": to_jsonable(params),
+    }
+    text = json.dumps(ident, sort_keys=True, separators=(",", ":"))
+    return hashlib.sha256(text.encode()).hexdigest()[:24]
+
+
+def execute_trial(trial: TrialConfig, seed: int) -> dict[str, Scalar]:
+    """Run one trial (in any process): grid columns + the scenario's metrics.
+
+    This is the function shipped to workers; it imports the scenario by name, so it is
+    picklable by reference.
+    """
+    module = load_scenario(trial.scenario)
+    metrics = module.run_trial(trial, seed)
+    if not isinstance(metrics, Mapping):
+        raise TypeError(
+            f"{module.__name__}.run_trial must return a dict, got {type(metrics).__name__}"
+        )
+    row: dict[str, Scalar] = {
+        "scenario": trial.scenario,
+        "pipeline": trial.pipeline,
+        "belt_speed_mps": trial.belt_speed_mps,
+        "n_robots": trial.n_robots,
+        "replicate": trial.replicate,
+        "seed": seed,
+    }
+    for name, value in metrics.items():
+        if name in row:
+            raise ValueError(f"{module.__name__}.run_trial returned grid column {name!r}")
+        if isinstance(value, np.generic):
+            value = value.item()
+        if not isinstance(value, float | int | bool | str | type(None)):
+            raise TypeError(
+                f"{module.__name__}.run_trial: column {name!r} must be a scalar, "
+                f"got {type(value).__name__}"
+            )
+        row[str(name)] = value
+    return row
+
+
+# --------------------------------------------------------------------------- persistence
+
+
+class TrialStore:
+    """Finished trials of one sweep: ``<root>/<key>.json``, each written atomically."""
+
+    def __init__(self, root: str | Path) -> None:
+        self.root = Path(root)
+
+    def keys(self) -> set[str]:
+        """Keys of the stored trials."""
+        if not self.root.is_dir():
+            return set()
+        return {p.stem for p in self.root.glob("*.json")}
+
+    def save(self, key: str, trial: TrialConfig, seed: int, row: Mapping[str, Scalar]) -> None:
+        record = {"key": key, "seed": seed, "trial": to_jsonable(trial), "row": dict(row)}
+        with atomic_write(self.root / f"{key}.json", "w") as fh:
+            json.dump(record, fh)
+
+    def load(self, key: str) -> dict[str, Scalar]:
+        return json.loads((self.root / f"{key}.json").read_text())["row"]
+
+    def clear(self) -> None:
+        for p in self.root.glob("*.json"):
+            p.unlink()
+
+
+# --------------------------------------------------------------------------- backends
+
+Pending = list[tuple[str, TrialConfig, int]]
+
+
+def _iter_serial(pending: Pending) -> Iterator[tuple[str, dict[str, Scalar]]]:
+    for key, trial, seed in pending:
+        yield key, execute_trial(trial, seed)
+
+
+def _quiet_on_interrupt() -> None:
+    """Worker initializer: Ctrl-C (sent to the whole process group) ends a worker quietly;
+    the driver reports the interruption once."""
+    import signal
+
+    signal.signal(signal.SIGINT, _exit_interrupted)
+
+
+def _exit_interrupted(signum: int, frame: Any) -> None:
+    raise SystemExit(130)
+
+
+def _iter_local(pending: Pending, workers: int) -> Iterator[tuple[str, dict[str, Scalar]]]:
+    import multiprocessing
+    from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+
+    # spawn: forking a process holding threads (torch, OpenMP, Ray) is unsafe.
+    pool = ProcessPoolExecutor(
+        max_workers=workers,
+        mp_context=multiprocessing.get_context("spawn"),
+        initializer=_quiet_on_interrupt,
+    )
+    try:
+        futures = {pool.submit(execute_trial, trial, seed): key for key, trial, seed in pending}
+        remaining = set(futures)
+        while remaining:
+            done, remaining = wait(remaining, return_when=FIRST_COMPLETED)
+            for future in sorted(done, key=lambda f: futures[f]):
+                yield futures[future], future.result()
+    finally:
+        pool.shutdown(wait=False, cancel_futures=True)
+
+
+def _iter_ray(
+    pending: Pending, workers: int | None, address: str | None
+) -> Iterator[tuple[str, dict[str, Scalar]]]:
+    try:
+        import ray
+    except ModuleNotFoundError:
+        raise ValueError("the ray backend needs Ray: pip install 'codesign_mb[ray]'") from None
+    owns = False
+    if not ray.is_initialized():
+        if address:
+            ray.init(address=address, log_to_driver=False)
+        else:
+            ray.init(num_cpus=workers, include_dashboard=False, log_to_driver=False)
+        owns = True
+    elif address:
+        # Already connected (e.g. inside a Ray job or a test fixture): use that cluster.
+        pass
+    remote = ray.remote(num_cpus=1)(execute_trial)
+    refs = {remote.remote(trial, seed): key for key, trial, seed in pending}
+    try:
+        remaining = list(refs)
+        while remaining:
+            done, remaining = ray.wait(remaining, num_returns=1)
+            for ref in done:
+                yield refs[ref], ray.get(ref)
+    finally:
+        for ref in refs:
+            ray.cancel(ref, force=False)
+        if owns:
+            ray.shutdown()
+
+
+@dataclass(frozen=True)
+class SweepResult:
+    """What :func:`run_sweep` did: the table, where it went, computed vs. reused trials."""
+
+    table: pd.DataFrame
+    paths: dict[str, Path]
+    computed: int
+    reused: int
+    backend: str
+
+    @property
+    def n_trials(self) -> int:
+        return self.computed + self.reused
+
+
+def run_sweep(
+    config: SweepConfig,
+    out_dir: str | Path,
+    *,
+    backend: Backend = "local",
+    address: str | None = None,
+    workers: int | None = None,
+    fresh: bool = False,
+    progress: Callable[[Iterator[Any], int], Iterable[Any]] | None = None,
+) -> SweepResult:
+    """Run (or resume) the sweep ``config`` and write its table into ``out_dir``.
+
+    Parameters
+    ----------
+    config:
+        The grid.
+    out_dir:
+        Results folder; finished trials are kept under ``out_dir/.trials/<name>/``.
+    backend:
+        ``"local"`` (process pool), ``"ray"`` or ``"serial"``.
+    address:
+        Ray cluster address (``"auto"``, ``"ray://host:10001"``, ...); ``None`` starts a local
+        Ray instance with ``workers`` CPUs (or uses the one already initialised).
+    workers:
+        Parallel trials (local pool size / local Ray CPUs); default ``os.cpu_count()``.
+    fresh:
+        Forget stored trials and recompute everything.
+    progress:
+        Wraps the stream of finished trials, e.g.
+        ``lambda it, total: track(it, total=total, description="sweep")``.
+
+    Returns
+    -------
+    SweepResult
+        The table (grid columns :data:`GRID_COLUMNS` then the scenario's metrics, in grid
+        order), the written paths, and how many trials were computed vs. reused.
+    """
+    if backend not in BACKENDS:
+        raise ValueError(f"backend must be one of {', '.join(BACKENDS)}, got {backend!r}")
+    if address is not None and backend != "ray":
+        raise ValueError("address is only used with backend 'ray'")
+    if workers is not None:
+        _require_int("workers", workers, minimum=1)
+    plan = plan_sweep(config)
+    out = Path(out_dir)
+    store = TrialStore(out / ".trials" / config.name)
+    if fresh:
+        store.clear()
+    keyed = [(trial_key(trial, seed), trial, seed) for trial, seed in plan]
+    stored = store.keys()
+    pending = [item for item in keyed if item[0] not in stored]
+    n_workers = min(workers or os.cpu_count() or 1, max(len(pending), 1))
+    if not pending:
+        stream: Iterator[tuple[str, dict[str, Scalar]]] = iter(())
+    elif backend == "serial":
+        stream = _iter_serial(pending)
+    elif backend == "local":
+        stream = _iter_local(pending, n_workers)
+    else:
+        stream = _iter_ray(pending, n_workers, address)
+    by_key = {key: (trial, seed) for key, trial, seed in pending}
+    iterable = progress(stream, len(pending)) if progress is not None else stream
+    for key, row in iterable:
+        trial, seed = by_key[key]
+        store.save(key, trial, seed, row)
+    table = pd.DataFrame([store.load(key) for key, _, _ in keyed])
+    paths = write_results(
+        out,
+        table=table,
+        config=config,
+        name=config.name,
+        extra={
+            "kind": "sweep",
+            "backend": backend,
+            "n_trials": len(keyed),
+            "computed": len(pending),
+            "reused": len(keyed) - len(pending),
+            "trial_store": str(store.root.relative_to(out)),
+        },
+    )
+    return SweepResult(
+        table=table,
+        paths=paths,
+        computed=len(pending),
+        reused=len(keyed) - len(pending),
+        backend=backend,
+    )
+
+
+# --------------------------------------------------------------------------- Ray Tune
+
+
+def tune_hyperparameters(
+    trainable: Callable[[dict[str, Any]], Mapping[str, Any]],
+    param_space: Mapping[str, Any],
+    *,
+    metric: str,
+    mode: Literal["min", "max"],
+    num_samples: int = 1,
+    seed: int = 0,
+    address: str | None = None,
+    max_concurrent_trials: int | None = None,
+    storage_path: str | Path | None = None,
+    name: str = "tune",
+    cpus_per_trial: float = 1.0,
+) -> pd.DataFrame:
+    """A hyperparameter search with Ray Tune around a plain ``trainable(config) -> metrics``.
+
+    Parameters
+    ----------
+    trainable:
+        A picklable function of one config dict (e.g. a training stage of
+        :mod:`codesign_mb.pipeline` with its hyperparameters and ``"seed"``) returning its final
+        metrics. It is wrapped so it reports them to Tune once; it need not know about Ray.
+    param_space:
+        Tune search space (``tune.grid_search``, ``tune.choice``, ``tune.loguniform``, plain
+        values). A ``"seed"`` entry is added (the trial's sample seed) unless present.
+    metric, mode:
+        The metric of ``trainable``'s result to optimise, ``"min"`` or ``"max"``.
+    num_samples:
+        Samples of the space (each grid point is repeated ``num_samples`` times).
+    seed:
+        Seeds the variant generator, so the sampled configs are reproducible.
+    address:
+        Ray cluster address; ``None`` uses the running Ray instance or starts a local one.
+    max_concurrent_trials, cpus_per_trial:
+        Parallelism limits.
+    storage_path, name:
+        Where Tune keeps its experiment folder (default: a temporary folder).
+
+    Returns
+    -------
+    pandas.DataFrame
+        One row per trial: ``config/<key>`` columns and the reported metrics, sorted by
+        ``metric`` (best first).
+    """
+    import tempfile
+
+    import ray
+    from ray import tune
+    from ray.tune.search.basic_variant import BasicVariantGenerator
+
+    if mode not in ("min", "max"):
+        raise ValueError(f"mode must be 'min' or 'max', got {mode!r}")
+    _require_int("num_samples", num_samples, minimum=1)
+    owns = False
+    if not ray.is_initialized():
+        if address:
+            ray.init(address=address, log_to_driver=False)
+        else:
+            ray.init(include_dashboard=False, log_to_driver=False)
+        owns = True
+    space = dict(param_space)
+    space.setdefault("seed", tune.randint(0, 2**31 - 1))
+    try:
+        tuner = tune.Tuner(
+            tune.with_resources(_TuneReporter(trainable), {"cpu": cpus_per_trial}),
+            param_space=space,
+            tune_config=tune.TuneConfig(
+                metric=metric,
+                mode=mode,
+                num_samples=num_samples,
+                max_concurrent_trials=max_concurrent_trials,
+                search_alg=BasicVariantGenerator(random_state=seed),
+            ),
+            run_config=tune.RunConfig(
+                name=name,
+                storage_path=str(storage_path or tempfile.mkdtemp(prefix="codesign-tune-")),
+                verbose=0,
+            ),
+        )
+        grid = tuner.fit()
+        frame = grid.get_dataframe()
+    finally:
+        if owns:
+            ray.shutdown()
+    keep = [c for c in frame.columns if c.startswith("config/")]
+    keep += [c for c in frame.columns if c not in keep and not _is_tune_bookkeeping(c)]
+    frame = frame[keep].sort_values(metric, ascending=(mode == "min"), kind="stable")
+    return frame.reset_index(drop=True)
+
+
+_TUNE_BOOKKEEPING = {
+    "timestamp",
+    "checkpoint_dir_name",
+    "done",
+    "training_iteration",
+    "trial_id",
+    "date",
+    "time_this_iter_s",
+    "time_total_s",
+    "pid",
+    "hostname",
+    "node_ip",
+    "time_since_restore",
+    "iterations_since_restore",
+    "logdir",
+}
+
+
+def _is_tune_bookkeeping(column: str) -> bool:
+    return column in _TUNE_BOOKKEEPING
+
+
+class _TuneReporter:
+    """Picklable wrapper reporting ``trainable(config)``'s metrics to Tune (function API)."""
+
+    def __init__(self, trainable: Callable[[dict[str, Any]], Mapping[str, Any]]) -> None:
+        self.trainable = trainable
+        self.__name__ = getattr(trainable, "__name__", "trainable")
+
+    def __call__(self, config: dict[str, Any]) -> None:
+        from ray import tune
+
+        metrics = self.trainable(dict(config))
+        if not isinstance(metrics, Mapping):
+            raise TypeError(f"trainable must return a dict, got {type(metrics).__name__}")
+        tune.report(dict(to_jsonable(dict(metrics))))
