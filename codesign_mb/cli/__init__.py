@@ -20,7 +20,18 @@ app = typer.Typer(
 )
 
 # Each module defines ``register(app: typer.Typer) -> None``.
-_COMMAND_MODULES = ("demo",)
+_COMMAND_MODULES = (
+    "demo",
+    "bench",
+    "sweep",
+    "report",
+    "wifi",
+    "solve",
+    "robot",
+    "train",
+    "table",
+    "evaluate",
+)
 
 for _name in _COMMAND_MODULES:
     importlib.import_module(f"codesign_mb.cli.{_name}").register(app)

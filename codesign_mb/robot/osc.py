@@ -1,0 +1,364 @@
+r"""Operational-space control of the Panda's gripper: Cartesian velocity -> joint torques.
+
+The low level of DESIGN.md step 7, part of the plant and the same for every policy. At each
+physics substep (2 ms) it turns the commanded gripper velocity ``v_cmd`` (held over the 40 ms
+control period) into arm torques with the classic operational-space law (Khatib 1987):
+
+.. math::
+
+    \dot x_r &\leftarrow \dot x_r + \mathrm{sat}_{a_{max} dt}(v_{cmd} - \dot x_r), \qquad
+    x_r \leftarrow x_r + \dot x_r\, dt \quad (|x_r - x| \le \ell_{max}) \\
+    a &= \begin{bmatrix} \ddot x_r + K_p (x_r - x) + K_d (\dot x_r - J_v \dot q) \\
+          K_R\, e_R - K_\omega J_\omega \dot q \end{bmatrix}, \quad
+          e_R = \tfrac12 (R_r R^T - R R_r^T)^\vee = \sin\theta\, k \\
+    \tau &= J^T \Lambda a + N^T M \big(k_n (q_0 - q) - d_n \dot q\big) + h(q, \dot q),
+    \qquad \Lambda = (J M^{-1} J^T)^{-1}, \; N = I - M^{-1} J^T \Lambda J
+
+with ``J`` the 6x7 TCP Jacobian, ``M`` the arm's inertia (armature included), ``h`` the
+Coriolis and gravity torques, all from the Pinocchio model; ``e_R`` is the usual
+orientation error (``R_r R^T = exp(theta k)``; equal to ``log(R_r R^T)`` to second order,
+and linear in ``R``); the null-space term holds the
+elbow near the posture ``q_0``; the torques are clipped to the URDF limits. The reference
+``x_r`` integrates the velocity command with a bounded acceleration (a step in the command
+would otherwise saturate the motors) and is kept within ``max_lag_m`` of the TCP, so a
+blocked gripper (pressed on the belt) pushes with a bounded force instead of winding up.
+The orientation reference is fixed (gripper pointing down, fingers closing across the belt):
+the command is a 3-D translational velocity, the orientation is regulated.
+
+Implementation (the plant's hot path). With the configuration-dependent matrices fixed,
+the law is affine in the reference error, the rotation matrix, ``q``, ``qdot`` and the
+reference terms:
+
+.. math::
+
+    \tau = G\, [\mathrm{vec}(H),\ x_r,\ K_d \dot x_r + \ddot x_r,\ q,\ \dot q] + h(q, \dot q)
+
+with ``H`` the TCP's homogeneous transform (rotation, position, and a 1 that carries the
+constant term), one copy per substep.
+
+``G`` (from ``J``, ``M``, ``Lambda``, ``N`` at the current ``q``) is recomputed from
+Pinocchio every ``model_period`` substeps, when the reference leash is also checked; the TCP
+pose and ``h`` are recomputed at every substep from the current state, so the feedback runs
+at 500 Hz. ``model_period=1`` is the exact law at every substep; the default refreshes
+``G`` every 10 ms (5 substeps), which changes the tracking error by well under a
+millimetre (``tests/test_robot.py``) and removes most of the per-substep linear algebra.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+import pinocchio as pin
+from numpy.typing import ArrayLike, NDArray
+from scipy.linalg.lapack import dposv
+
+from codesign_mb.robot.model import GRIPPER_DOWN, N_ARM, PandaModel
+
+__all__ = ["OperationalSpaceController", "OscGains"]
+
+_SINGULAR_DAMPING = 1e-6
+
+
+@dataclass(frozen=True)
+class OscGains:
+    """Gains and limits of :class:`OperationalSpaceController`.
+
+    Parameters
+    ----------
+    kp_pos, kd_pos:
+        Translational stiffness (1/s^2) and damping (1/s) per unit task-space mass.
+    kp_rot, kd_rot:
+        Rotational stiffness (1/s^2) and damping (1/s).
+    kp_null, kd_null:
+        Null-space posture stiffness (1/s^2) and damping (1/s).
+    max_accel_mps2:
+        Bound on the reference acceleration (m/s^2).
+    max_lag_m:
+        Bound on the distance between the reference and the TCP (m).
+    """
+
+    kp_pos: float = 900.0
+    kd_pos: float = 60.0
+    kp_rot: float = 600.0
+    kd_rot: float = 50.0
+    kp_null: float = 25.0
+    kd_null: float = 10.0
+    max_accel_mps2: float = 8.0
+    max_lag_m: float = 0.05
+
+    def __post_init__(self) -> None:
+        for name in ("kp_pos", "kd_pos", "kp_rot", "kd_rot", "kp_null", "kd_null"):
+            value = getattr(self, name)
+            if not np.isfinite(value) or value < 0:
+                raise ValueError(f"{name} must be finite and >= 0, got {value}")
+        for name in ("max_accel_mps2", "max_lag_m"):
+            value = getattr(self, name)
+            if not np.isfinite(value) or value <= 0:
+                raise ValueError(f"{name} must be finite and > 0, got {value}")
+
+
+class OperationalSpaceController:
+    """Cartesian gripper velocity tracking by operational-space torques (see module doc).
+
+    Parameters
+    ----------
+    robot:
+        The Pinocchio model; its ``data`` workspace is used (one controller per robot).
+    gains:
+        :class:`OscGains`.
+    dt:
+        The substep (s) at which torques are computed.
+    model_period:
+        Substeps between recomputations of ``J``, ``Lambda``, ``N^T M`` (1 = every substep).
+
+    Examples
+    --------
+    >>> robot = PandaModel()
+    >>> osc = OperationalSpaceController(robot)
+    >>> q = robot.neutral()
+    >>> osc.reset(q)
+    >>> osc.set_velocity_command([0.1, 0.0, 0.0])
+    >>> tau = osc.torque(q, np.zeros(9))  # (7,) arm torques for the next 2 ms
+    """
+
+    def __init__(
+        self,
+        robot: PandaModel,
+        gains: OscGains | None = None,
+        *,
+        dt: float = 0.002,
+        model_period: int = 5,
+    ) -> None:
+        if not dt > 0:
+            raise ValueError(f"dt must be > 0, got {dt}")
+        if int(model_period) < 1:
+            raise ValueError(f"model_period must be >= 1, got {model_period}")
+        self.robot = robot
+        self.gains = gains or OscGains()
+        self.dt = float(dt)
+        self.model_period = int(model_period)
+        self.rotation_ref: NDArray[np.float64] = GRIPPER_DOWN.copy()
+        self.posture: NDArray[np.float64] = robot.neutral()[:N_ARM]
+        self.workspace: tuple[NDArray[np.float64], NDArray[np.float64], float] | None = None
+        g = self.gains
+        nv = robot.model.nv
+        self.torque_limit: NDArray[np.float64] = robot.arm_effort_limit
+        self._kd6 = np.array([g.kd_pos] * 3 + [g.kd_rot] * 3)
+        self._x_ref = np.zeros(3)
+        self._v_ref = np.zeros(3)
+        self._v_cmd = np.zeros(3)
+        self._k = 0
+        # Stacked input s = [H (16), x_r (3), r (3), q (nv), qdot (nv)] of the affine law
+        # tau = G s + h(q, qdot): H is the TCP's 4x4 homogeneous transform, row-major (its
+        # rotation, its position and a constant 1 that carries the constant term), x_r the
+        # position reference and r = K_d xdot_r + xddot_r the reference term.
+        self._nv = nv
+        self._iH = slice(0, 16)
+        self._iref = slice(16, 22)
+        self._iq = slice(22, 22 + nv)
+        self._iv = slice(22 + nv, 22 + 2 * nv)
+        self._s = np.zeros(22 + 2 * nv)
+        self._G = np.zeros((N_ARM, self._s.size))
+        self._tau = np.zeros(N_ARM)
+        self._set_input_maps()
+
+    @property
+    def position_reference(self) -> NDArray[np.float64]:
+        """The TCP position reference ``x_r`` (m)."""
+        return self._x_ref.copy()
+
+    @property
+    def velocity_reference(self) -> NDArray[np.float64]:
+        """The TCP velocity reference (m/s)."""
+        return self._v_ref.copy()
+
+    def reset(
+        self,
+        q: ArrayLike,
+        *,
+        posture: ArrayLike | None = None,
+        rotation: ArrayLike | None = None,
+    ) -> None:
+        """Start holding the current TCP position; optionally set the posture and rotation."""
+        q = np.asarray(q, dtype=float)
+        position, _ = self.robot.tcp_pose(q)
+        self._x_ref[:] = position
+        self._v_ref[:] = 0.0
+        self._v_cmd[:] = 0.0
+        if posture is not None:
+            self.posture = np.asarray(posture, dtype=float)[:N_ARM].copy()
+        if rotation is not None:
+            self.rotation_ref = np.asarray(rotation, dtype=float).copy()
+        self._set_input_maps()
+        self._k = 0
+
+    def set_workspace(self, low: ArrayLike, high: ArrayLike, radius: float = np.inf) -> None:
+        """Keep the position reference in the box ``[low, high]`` (m) and within ``radius``
+        of the base's z axis: the gripper then stops at the boundary (up to its lag).
+        """
+        low, high = np.asarray(low, dtype=float), np.asarray(high, dtype=float)
+        if not (np.all(low < high) and radius > 0):
+            raise ValueError(f"empty workspace: low {low}, high {high}, radius {radius}")
+        self.workspace = (low, high, float(radius))
+
+    def set_velocity_command(self, velocity: ArrayLike) -> None:
+        """The TCP velocity (m/s, base frame) to track until the next command."""
+        self._v_cmd[:] = velocity
+
+    def torque(self, q: NDArray[np.float64], v: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Arm torques (7,) for the state ``(q, v)`` (9,), clipped to the limits.
+
+        Advances the reference by one substep ``dt``; :meth:`run` is the same law over
+        several substeps with the physics stepped in between.
+        """
+        self.run(q, v, self._tau, None, 1, clip=True)
+        return self._tau.copy()
+
+    def run(
+        self,
+        q: NDArray[np.float64],
+        v: NDArray[np.float64],
+        ctrl: NDArray[np.float64],
+        step: Callable[[], object] | None,
+        n: int,
+        *,
+        clip: bool = True,
+    ) -> None:
+        """Run ``n`` substeps: ``ctrl[:] = tau(q, v)``, then ``step()`` advances the physics.
+
+        ``q`` and ``v`` are live views of the simulator's state (read after every step).
+        ``clip=False`` leaves the torque limits to the actuators (MuJoCo's ``ctrlrange`` is
+        set to the same limits). This is the plant's hot path: locals bound once,
+        preallocated buffers, three Pinocchio calls (forward kinematics, frame placement,
+        RNEA), four copies into the stacked input and one 7x40 matrix-vector product per
+        substep.
+        """
+        model, data, fid = self.robot.model, self.robot.data, self.robot.tcp_id
+        refs = self._plan_reference(n)
+        s, G, period = self._s, self._G, self.model_period
+        H, iref, iq, iv = s[self._iH].reshape(4, 4), self._iref, self._iq, self._iv
+        limit, max_lag = self.torque_limit, self.gains.max_lag_m
+        forward, place, nle = pin.forwardKinematics, pin.updateFramePlacement, pin.nonLinearEffects
+        add = np.add
+        k = self._k
+        for i in range(n):
+            if k % period == 0:
+                self._update_model(q)
+                # Keep the reference on a leash (checked at each model refresh).
+                error = refs[i, :3] - place(model, data, fid).translation
+                dist = float(np.sqrt(error @ error))
+                if dist > max_lag:
+                    refs[i:, :3] -= error * (1.0 - max_lag / dist)
+            else:
+                forward(model, data, q)
+            k += 1
+            H[:] = place(model, data, fid).homogeneous
+            s[iref] = refs[i]
+            s[iq] = q
+            s[iv] = v
+            if clip:
+                tau = G @ s
+                tau += nle(model, data, q, v)[:N_ARM]
+                np.minimum(tau, limit, out=tau)
+                np.maximum(tau, -limit, out=tau)
+                ctrl[:] = tau
+            else:
+                add(G @ s, nle(model, data, q, v)[:N_ARM], out=ctrl)
+            if step is not None:
+                step()
+        self._k = k
+        self._x_ref[:] = refs[-1, :3]
+
+    def _plan_reference(self, n: int) -> NDArray[np.float64]:
+        # The reference velocity moves towards the command with bounded acceleration
+        # (straight line in velocity space); the reference position is kept in the workspace.
+        # Returns, for each of the n substeps, the reference position after it and the
+        # reference term r = K_d xdot_r + xddot_r.
+        dt, g = self.dt, self.gains
+        delta = self._v_cmd - self._v_ref
+        dist = float(np.sqrt(delta @ delta))
+        refs = np.empty((n, 6))
+        if dist == 0.0:
+            v = np.broadcast_to(self._v_ref, (n, 3))
+            a = None
+        else:
+            reached = np.minimum(g.max_accel_mps2 * dt * np.arange(1, n + 1), dist)
+            v = self._v_ref + np.outer(reached / dist, delta)
+            a = np.diff(reached, prepend=0.0)[:, None] * (delta / (dist * dt))
+        x = refs[:, :3]
+        np.cumsum(v * dt, axis=0, out=x)
+        x += self._x_ref
+        if self.workspace is not None and self._project(x):
+            # Stopped or sliding at the boundary: the velocity is the projected one's and
+            # the acceleration feedforward is dropped.
+            v = np.diff(x, axis=0, prepend=self._x_ref[None]) / dt
+            a = None
+        refs[:, 3:] = v * g.kd_pos
+        if a is not None:
+            refs[:, 3:] += a
+        self._v_ref[:] = v[-1]
+        return refs
+
+    def _project(self, x: NDArray[np.float64]) -> bool:
+        # Project reference positions (n, 3) in place into the workspace; True if any moved.
+        low, high, radius = self.workspace
+        before = x.copy()
+        np.clip(x, low, high, out=x)
+        rxy = np.hypot(x[:, 0], x[:, 1])
+        over = rxy > radius
+        if over.any():
+            x[over, :2] *= (radius / rxy[over])[:, None]
+        return not np.array_equal(x, before)
+
+    def _set_input_maps(self) -> None:
+        # G = J^T Lambda P + N^T M Q: P (6 x ns) maps s to the task-space acceleration a
+        # (its qdot block, -K_d J, is refreshed with J), Q (7 x ns) to the posture term.
+        g, nv, ns = self.gains, self._nv, self._s.size
+        L = _orientation_error_map(self.rotation_ref)  # e_R = L vec(R), vec row-major
+        P = np.zeros((6, ns))
+        for row in range(3):  # + K_R e_R: the rotation sits in H[:3, :3], row-major
+            P[3:, 4 * row : 4 * row + 3] = g.kp_rot * L[:, 3 * row : 3 * row + 3]
+        P[:3, (3, 7, 11)] = -g.kp_pos * np.eye(3)  # - K_p x (the last column of H)
+        P[:3, 16:19] = g.kp_pos * np.eye(3)  # + K_p x_r
+        P[:3, 19:22] = np.eye(3)  # + K_d xdot_r + xddot_r
+        Q = np.zeros((N_ARM, ns))
+        Q[:, 15] = g.kp_null * self.posture  # H[3, 3] = 1 carries the constant
+        Q[:, 22 : 22 + N_ARM] = -g.kp_null * np.eye(N_ARM)
+        Q[:, 22 + nv : 22 + nv + N_ARM] = -g.kd_null * np.eye(N_ARM)
+        self._P, self._Q = P, Q
+        self._Pv = P[:, 22 + nv : 22 + nv + N_ARM]  # view: -K_d J, set in _update_model
+        self._kd6_col = self._kd6[:, None]
+
+    def _update_model(self, q: NDArray[np.float64]) -> None:
+        model, data = self.robot.model, self.robot.data
+        J = pin.computeFrameJacobian(model, data, q, self.robot.tcp_id, pin.LOCAL_WORLD_ALIGNED)
+        J = J[:, :N_ARM]
+        M = pin.crba(model, data, q)[:N_ARM, :N_ARM]  # symmetric (both triangles filled)
+        # Cholesky solves (LAPACK dposv: no numpy.linalg overhead on these tiny systems).
+        _, MinvJt, info = dposv(M, J.T)
+        _, LamJ, info_lam = dposv(J @ MinvJt, J)
+        if info or info_lam:  # at a singularity: damped least squares
+            _, LamJ, info_lam = dposv(J @ MinvJt + _SINGULAR_DAMPING * np.eye(6), J)
+        JtL = LamJ.T  # J^T Lambda (Lambda is symmetric)
+        NtM = M - JtL @ J  # N^T M = (I - J^T Lambda J M^-1) M
+        np.multiply(self._kd6_col, -J, out=self._Pv)
+        np.add(JtL @ self._P, NtM @ self._Q, out=self._G)
+
+
+def _orientation_error_map(rotation_ref: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The 3x9 matrix ``L`` with ``L vec(R) = vee(R_r R^T - R R_r^T) / 2``.
+
+    That is ``sin(theta) k`` for the rotation ``R_r R^T = exp(theta k)`` from the current to
+    the reference orientation (world frame): the usual orientation error of operational-space
+    controllers (equal to ``log(R_r R^T)`` to second order), and linear in ``R``.
+    """
+    L = np.zeros((3, 9))
+    for j in range(9):
+        R = np.zeros(9)
+        R[j] = 1.0
+        E = rotation_ref @ R.reshape(3, 3).T
+        S = 0.5 * (E - E.T)
+        L[:, j] = (S[2, 1], S[0, 2], S[1, 0])
+    return L
