@@ -1,5 +1,6 @@
 """QoS adaptation policies: static, rule-based, learned (SAC with a primal-dual multiplier)."""
 
 from codesign_mb.adaptation.base import QosPolicy, StaticQos
+from codesign_mb.adaptation.rules import CovarianceTriggeredQos, tune_threshold
 
-__all__ = ["QosPolicy", "StaticQos"]
+__all__ = ["CovarianceTriggeredQos", "QosPolicy", "StaticQos", "tune_threshold"]
