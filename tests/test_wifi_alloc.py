@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 from functools import cache
+from itertools import combinations
 
 import numpy as np
 import pytest
@@ -20,7 +21,8 @@ from codesign_mb.wifi import (
     offline_optimum,
     replay,
 )
-from codesign_mb.wifi.allocators import served_bits
+from codesign_mb.wifi.allocators import admit_edf, must_serve, served_bits
+from codesign_mb.wifi.sim import ChannelEngine, Frame
 
 CELL = WifiConfig(channel=ChannelConfig(fixed_mcs=1, q0=0.9, rician_k_db=math.inf))
 
@@ -169,3 +171,94 @@ def test_allocator_config_errors_name_the_field():
         ConvexAllocator(ConvexAllocatorConfig(n_stations=2)).allocate(
             _random_demand(np.random.default_rng(0), 3)
         )
+
+
+def _edf_feasible(work, slack):
+    return bool(np.all(np.cumsum(work) <= np.asarray(slack) + 1e-9))
+
+
+def test_admit_edf_keeps_the_most_frames():
+    """Moore-Hodgson: the admitted set is EDF-feasible and as large as any feasible subset."""
+    rng = np.random.default_rng(0)
+    for _ in range(150):
+        n = int(rng.integers(1, 8))
+        slack = np.sort(rng.integers(1, 12, n)).astype(float)
+        work = rng.uniform(0.2, 5.0, n)
+        keep = admit_edf(work, slack)
+        assert _edf_feasible(work[keep], slack[keep])
+        best = max(
+            r
+            for r in range(n + 1)
+            for c in combinations(range(n), r)
+            if _edf_feasible(work[list(c)], slack[list(c)])
+        )
+        assert keep.sum() == best
+
+
+def test_admit_edf_weights_protect_valuable_frames():
+    work, slack = [2.0, 2.0], [2.0, 3.0]  # only one fits
+    assert admit_edf(work, slack).tolist() == [True, False]  # tie: drop the later deadline
+    assert admit_edf(work, slack, np.array([1.0, 3.0])).tolist() == [False, True]
+    assert admit_edf([3.0], [2.0]).tolist() == [False]  # cannot make it alone
+
+
+def test_must_serve_keeps_the_admitted_set_feasible():
+    rng = np.random.default_rng(1)
+    for _ in range(200):
+        n = int(rng.integers(1, 7))
+        slack = np.sort(rng.integers(1, 10, n)).astype(float)
+        work = rng.uniform(0.1, 4.0, n)
+        keep = admit_edf(work, slack)
+        work, slack = work[keep], slack[keep]
+        must = must_serve(work, slack)
+        assert np.all(must >= -1e-12) and np.all(must <= work + 1e-12)
+        assert must.sum() <= 1.0 + 1e-9
+        later = slack > 1  # serve `must` now: the rest still fits from the next tick on
+        assert _edf_feasible((work - must)[later], slack[later] - 1)
+        assert np.allclose(must[~later], work[~later])  # due now: all of it
+
+
+def test_uplink_ppdu_counts_only_the_scheduled_stations():
+    """Trigger and multi-STA BlockAck address the stations given an RU, not every queued one."""
+
+    class FirstOnly:
+        plan = GreedyEdfAllocator(40).plan
+
+        def allocate(self, demand):
+            layout = np.full(demand.n_stations, -1)
+            layout[0] = len(self.plan.units) - 1  # the 484-tone RU
+            return layout
+
+    engine = ChannelEngine(CELL, 6, FirstOnly(), GreedyEdfAllocator(40))
+    frames = [Frame(i, 0, 0, 40, 400_000, 528) for i in range(6)]
+    for f in frames:
+        engine.add(f)
+    engine.run_tick(np.ones(6), np.ones(6))
+    mac, phy = CELL.mac, CELL.phy
+    n_sym = mac.ul_data_symbols(1, 0, phy.symbol_us, 40)
+    assert n_sym > mac.ul_data_symbols(6, 0, phy.symbol_us, 40)
+    assert frames[0].ul_bits - frames[0].ul_left == pytest.approx(468 * n_sym)
+    assert all(f.ul_left == f.ul_bits for f in frames[1:])
+    expected = mac.channel_access_us + mac.ul_overhead_us(1, phy.symbol_us) + n_sym * phy.symbol_us
+    assert engine.busy_us == pytest.approx(expected)
+
+
+def test_admission_control_keeps_convex_near_the_optimum_under_overload():
+    _, convex, bound = _outcomes("overload")
+    assert convex.delivered >= 0.8 * bound.optimum
+    _, convex, bound = _outcomes("tau2")
+    assert convex.delivered >= 0.95 * bound.optimum
+
+
+def test_convex_admits_the_valuable_frame_when_only_one_fits():
+    alloc = ConvexAllocator(ConvexAllocatorConfig(n_stations=2, admission_capacity=1.0))
+    e = np.array([1.0, 1.0])
+    bits = np.array([468.0 * 3, 468.0 * 3])  # three ticks of the whole band each
+    demand = TickDemand(bits, bits, np.array([3.0, 4.0]), e)
+    assert alloc.admitted(demand).tolist() == [0]  # tie: the earlier deadline stays
+    layout = alloc.allocate(demand)
+    assert alloc.plan.units[layout[0]].tones == 484 and layout[1] == -1
+    valued = TickDemand(bits, bits, np.array([3.0, 4.0]), e, weights=np.array([1.0, 5.0]))
+    assert alloc.admitted(valued).tolist() == [1]
+    layout = alloc.allocate(valued)
+    assert alloc.plan.units[layout[1]].tones == 484 and layout[0] == -1

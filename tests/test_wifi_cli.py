@@ -65,9 +65,16 @@ def test_capacity_small(tmp_path):
     r = runner.invoke(
         app,
         ["wifi", "capacity", "--robots", "1..2", "--channels", "paper", "--schedulers",
-         "greedy", "--trials", "1", "--max-steps", "5", "--json"],
+         "greedy", "--trials", "1", "--max-steps", "5", "--stack", "toy", "--out",
+         str(tmp_path), "--json"],
     )  # fmt: skip
     assert r.exit_code == 0, r.output
     rows = json.loads(r.stdout)
     assert {row["pipeline"] for row in rows} == {"static", "codesign"}
     assert {row["robots"] for row in rows} == {1, 2}
+    for name in ("fig_wifi.png", "fig_wifi.parquet", "fig_wifi.csv", "fig_wifi.json"):
+        assert (tmp_path / name).stat().st_size > 0
+    meta = json.loads((tmp_path / "fig_wifi.json").read_text())
+    assert meta["config"]["stack"] == "toy" and len(meta["extra"]["curves"]) == 4
+    r = runner.invoke(app, ["wifi", "capacity", "--stack", "nope", "--out", str(tmp_path)])
+    assert r.exit_code == 2 and "stack must be one of" in r.output

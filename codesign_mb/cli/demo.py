@@ -1,6 +1,8 @@
 """``codesign demo``: the best scenario the toolkit has, in a few seconds.
 
-Today's scenario (``--scenario lqg``, the default): certainty-equivalent LQG
+The default scenario, ``robot``, is the MPC with the delay-compensating predictor picking off
+the conveyor over a lossy link (:mod:`codesign_mb.evaluation.demo_robot`); giving ``--plant`` or
+``--horizon`` selects ``lqg``. Scenario ``lqg``: certainty-equivalent LQG
 (:func:`codesign_mb.control.lqr.lqg`) on a linear plant whose measurement reaches the
 controller over a :class:`~codesign_mb.network.BernoulliLink`, for a few reliabilities ``q``,
 several seeded episodes each, through :func:`~codesign_mb.evaluation.rollout.rollout`. The
@@ -147,7 +149,7 @@ def run_lqg_demo(cfg: LqgDemoConfig, *, progress: bool = False) -> dict[str, Any
     }
 
 
-SCENARIOS: tuple[str, ...] = ("lqg",)
+SCENARIOS: tuple[str, ...] = ("robot", "lqg")
 """The scenarios ``--scenario`` accepts; the first is the default."""
 
 
@@ -188,9 +190,25 @@ def register(app: typer.Typer) -> None:
         config: ConfigOption = None,
         as_json: JsonOption = False,
     ) -> None:
-        """LQG over a lossy link: mean cost per step, age and delivered fraction versus q."""
+        """MPC + predictor picking off the conveyor (default), or LQG (--scenario lqg) vs q."""
         if scenario not in SCENARIOS:
             raise ValueError(f"scenario must be one of {', '.join(SCENARIOS)}, got {scenario!r}")
+        lqg_only = explicit(ctx, {"plant": plant, "horizon": horizon})
+        if scenario == "robot" and lqg_only and not explicit(ctx, {"scenario": scenario}):
+            scenario = "lqg"  # the LQG-only options --plant/--horizon select that scenario
+        if scenario == "robot":  # MPC + predictor on the conveyor (part MPC's module)
+            from codesign_mb.evaluation.demo_robot import robot_demo_command
+
+            robot_demo_command(
+                ctx,
+                config=config,
+                reliability=reliability,
+                latency=latency,
+                episodes=episodes,
+                seed=seed,
+                as_json=as_json,
+            )
+            return
         overrides = explicit(
             ctx,
             {

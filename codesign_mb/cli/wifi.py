@@ -10,6 +10,7 @@ import typer
 from codesign_mb.cli.common import (
     ConfigOption,
     JsonOption,
+    OutOption,
     SeedOption,
     cli_errors,
     emit,
@@ -112,27 +113,40 @@ def register(app: typer.Typer) -> None:
         schedulers: Annotated[
             str, typer.Option("--schedulers", help="Allocators, comma separated: greedy,convex.")
         ] = "greedy,convex",
+        stack: Annotated[
+            str,
+            typer.Option(
+                "--stack",
+                help="Plant and pipelines: conveyor (MuJoCo + MPC + predictor) or toy.",
+            ),
+        ] = "conveyor",
         trials: Annotated[int, typer.Option("--trials", help="Episodes per point.")] = 4,
         max_steps: Annotated[
             int | None, typer.Option("--max-steps", help="Episode cap in steps (40 ms).")
         ] = None,
-        out: Annotated[
-            Path | None,
-            typer.Option(
-                "--out", "-o", help="Results folder (table, config, figure).", file_okay=False
-            ),
-        ] = None,
+        workers: Annotated[
+            int, typer.Option("--workers", "-w", help="Processes running points in parallel.")
+        ] = 1,
+        out: OutOption = Path("results/fig_wifi"),
         config: ConfigOption = None,
         seed: SeedOption = 0,
         as_json: JsonOption = False,
     ) -> None:
         """Task success vs number of robots on one channel (Fig. 6), per pipeline x scheduler.
 
-        The pipelines (plant, controller, estimator, QoS policy) come from the config file's
-        ``pipelines`` and ``plant`` tables; the defaults run the kinematic toy conveyor with a
-        static QoS (q = 1) and an age-triggered QoS rule.
+        Writes OUT/fig_wifi.parquet/.csv/.json (one row per trial) and OUT/fig_wifi.png, and
+        prints the curves with each one's capacity (most robots at 95 % success). The plant
+        and the pipelines (controller, estimator, QoS policy) come from --stack or the config
+        file's ``plant`` and ``pipelines`` tables (section ``[capacity]`` or top level).
         """
-        from codesign_mb.wifi.capacity import CapacityConfig, capacity_table, run_capacity
+        from codesign_mb.config import to_mapping
+        from codesign_mb.evaluation.results import write_results
+        from codesign_mb.wifi.capacity import (
+            CapacityConfig,
+            capacity_table,
+            plot_capacity,
+            run_capacity,
+        )
 
         overrides: dict[str, Any] = explicit(
             ctx,
@@ -140,8 +154,10 @@ def register(app: typer.Typer) -> None:
                 "robots": robots,
                 "channels": channels,
                 "schedulers": schedulers,
+                "stack": stack,
                 "trials": trials,
                 "max_steps": max_steps,
+                "workers": workers,
                 "seed": seed,
             },
         )
@@ -151,13 +167,7 @@ def register(app: typer.Typer) -> None:
         if "robots" in overrides:
             overrides["robots"] = list(_parse_robots(str(overrides["robots"])))
         cfg = load_config(CapacityConfig, config, overrides, section="capacity")
-        n_points = (
-            len(cfg.channels)
-            * len(cfg.schedulers)
-            * len(cfg.pipelines)
-            * len(cfg.robots)
-            * cfg.trials
-        )
+        n_points = len(cfg.points())
         results = run_capacity(
             cfg,
             progress=lambda pts: track(
@@ -165,16 +175,14 @@ def register(app: typer.Typer) -> None:
             ),
         )
         table = capacity_table(results, success_target=cfg.success_target)
-        if out is not None:
-            from codesign_mb.config import to_mapping
-            from codesign_mb.evaluation.results import write_results
-
-            write_results(
-                out,
-                table=results,
-                config=to_mapping(cfg),
-                name="wifi_capacity",
-                extra={"curves": table.to_dict("records")},
-            )
-            note(f"results written to {out}")
+        paths = write_results(
+            out,
+            table=results,
+            config=to_mapping(cfg),
+            name="fig_wifi",
+            extra={"curves": table.to_dict("records")},
+        )
+        png = plot_capacity(results, Path(out) / "fig_wifi.png", success_target=cfg.success_target)
+        if not as_json:
+            note(f"results written to {paths['parquet']}, {paths['csv']} and {png}")
         emit(table, as_json=as_json, title="task success vs robots (fig_wifi)")

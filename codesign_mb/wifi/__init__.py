@@ -1,7 +1,8 @@
 """WiFi 6 (802.11ax) OFDMA cell for N robots: PHY, channel, traffic, allocators, simulator.
 
 paper.tex sec. 5 and 6.1; see each module for the equations (``eq_rate``, ``eq_layout``,
-``eq_per``, ``eq_drop``, ``eq_deadline``, ``eq_greedy``, ``eq_qp``, ``eq_lp``).
+``eq_per``, ``eq_drop``, ``eq_deadline``, ``eq_greedy``, ``eq_admit``, ``eq_qp``, ``eq_round``,
+``eq_lp``).
 """
 
 from codesign_mb.wifi.allocators import (
@@ -14,16 +15,20 @@ from codesign_mb.wifi.allocators import (
 from codesign_mb.wifi.cell import SharedChannel, WifiLink, generate_trace, rollout_shared
 from codesign_mb.wifi.channel import ChannelConfig
 from codesign_mb.wifi.config import WifiConfig, make_allocator
-from codesign_mb.wifi.offline import OfflineResult, offline_optimum
+from codesign_mb.wifi.offline import AirtimePrices, OfflineResult, airtime_prices, offline_optimum
 from codesign_mb.wifi.phy import MacTiming, PhyConfig, data_rate_mbps, ru_plan
+from codesign_mb.wifi.qos import AgeTriggeredQos, CovarianceTriggeredQos
 from codesign_mb.wifi.sim import Trace, replay
 from codesign_mb.wifi.traffic import TrafficConfig, drop_probability
 
 __all__ = [
+    "AgeTriggeredQos",
+    "AirtimePrices",
     "Allocator",
     "ChannelConfig",
     "ConvexAllocator",
     "ConvexAllocatorConfig",
+    "CovarianceTriggeredQos",
     "GreedyEdfAllocator",
     "MacTiming",
     "OfflineResult",
@@ -34,6 +39,7 @@ __all__ = [
     "TrafficConfig",
     "WifiConfig",
     "WifiLink",
+    "airtime_prices",
     "data_rate_mbps",
     "drop_probability",
     "generate_trace",

@@ -8,17 +8,21 @@ and ``V_fk`` of its state frame that have been sent (``eq_lp``)::
     max  sum_f V_f,last
     s.t. U_f,k-1 <= U_f,k,   V_f,k-1 <= V_f,k,   0 <= U, V <= 1
          V_f,k <= U_f,k-1-p                                  state frame after camera frame
-         sum_f B_f^UL (U_fk - U_f,k-1) / (b_ik N_UL) <= S    UL subcarriers of tick k
+         V_f,k - V_f,k-1 <= y_k,   0 <= y_k <= 1             a DL exchange in tick k
+         sum_f B_f^UL (U_fk - U_f,k-1) / b_ik <= S (N_UL - (N_UL - N_UL') y_k)
+                                                             UL subcarrier-symbols of tick k
          sum_f B_f^DL (V_fk - V_f,k-1) / (b_ik N_DL) <= S    DL subcarriers of tick k
 
 with ``U`` defined on ``[capture, deadline - 1 - p)`` and ``V`` on ``[capture + 1 + p,
 deadline)`` (``eq_deadline``), ``b_ik`` the bits per subcarrier-symbol of station ``i``,
-``N_UL`` the most UL data symbols a tick can hold (one user, no DL), ``N_DL`` the DL symbols,
-and ``S`` the data subcarriers of the full-band RU, which no valid layout exceeds. Every
-simulated schedule is feasible for this LP (its layouts use at most ``S`` subcarriers, its
-PPDUs at most ``N_UL``/``N_DL`` symbols, and a state frame is queued only after its camera
-frame), so the optimum bounds the delivered count of any online allocator. Frames the channel
-will lose are left out: no schedule can deliver them.
+``N_UL`` the most UL data symbols a tick can hold (one user, no DL), ``N_UL'`` the most when
+the tick also holds a DL exchange (one user each way), ``N_DL`` the DL symbols, and ``S`` the
+data subcarriers of the full-band RU, which no valid layout exceeds. Every simulated schedule
+is feasible for this LP (with ``y_k = 1`` in the ticks that carry a DL PPDU: its layouts use at
+most ``S`` subcarriers, its PPDUs at most ``N_UL``, or ``N_UL'`` next to a DL exchange, and
+``N_DL`` symbols, and a state frame is queued only after its camera frame), so the optimum
+bounds the delivered count of any online allocator. Frames the channel will lose are left
+out: no schedule can deliver them.
 
 Solvers: HiGHS (``scipy.optimize.linprog``), Clarabel and OSQP, each called on the same
 matrices.
@@ -27,27 +31,47 @@ matrices.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
+import pandas as pd
 import scipy.sparse as sp
 from numpy.typing import NDArray
 
 from codesign_mb.wifi.sim import Trace
 
-__all__ = ["LP_SOLVERS", "OfflineLp", "OfflineResult", "build_offline_lp", "offline_optimum"]
+__all__ = [
+    "LP_SOLVERS",
+    "AirtimePrices",
+    "OfflineLp",
+    "OfflineResult",
+    "airtime_prices",
+    "build_offline_lp",
+    "offline_optimum",
+]
 
 LP_SOLVERS = ("highs", "clarabel", "osqp")
 
 
 @dataclass(frozen=True)
 class OfflineLp:
-    """``eq_lp`` as ``max c'x  s.t.  A x <= b, 0 <= x <= 1``."""
+    """``eq_lp`` as ``max c'x  s.t.  A x <= b, 0 <= x <= 1``.
+
+    ``frame_rows`` are the rows of the trace's frame table in the LP (one per frame, in
+    order; ``objective_vars`` their ``V_f,last``), ``ul_rows``/``ul_ticks`` and
+    ``dl_rows``/``dl_ticks`` the capacity constraints of each tick.
+    """
 
     c: NDArray[np.float64]
     A: sp.csc_matrix
     b: NDArray[np.float64]
     n_frames: int
+    frame_rows: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    objective_vars: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    ul_rows: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    ul_ticks: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    dl_rows: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    dl_ticks: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
 
     @property
     def n_variables(self) -> int:
@@ -78,6 +102,7 @@ def build_offline_lp(trace: Trace) -> OfflineLp:
     mac, phy = cfg.mac, cfg.phy
     p = cfg.traffic.processing_ticks(mac.tick_us)
     n_ul = mac.ul_data_symbols(1, 0, phy.symbol_us, phy.bandwidth_mhz)
+    n_ul_dl = mac.ul_data_symbols(1, 1, phy.symbol_us, phy.bandwidth_mhz)
     n_dl = mac.dl_data_symbols
     full = float(phy.plan.full_band_data_subcarriers)
     horizon = trace.horizon_ticks
@@ -89,6 +114,7 @@ def build_offline_lp(trace: Trace) -> OfflineLp:
     b: list[float] = []
     ul_cap: list[tuple[int, int, float]] = []
     dl_cap: list[tuple[int, int, float]] = []
+    dl_steps: list[tuple[int, int, int]] = []  # (tick, V_k, V_k-1 or -1)
     objective: list[int] = []
     nv = 0
     r = 0
@@ -103,13 +129,15 @@ def build_offline_lp(trace: Trace) -> OfflineLp:
         r += 1
 
     n_frames = 0
-    for f in frames.itertuples(index=False):
+    frame_rows: list[int] = []
+    for row, f in zip(frames.index, frames.itertuples(index=False), strict=True):
         i, cap, dead = int(f.station), int(f.capture_tick), min(int(f.deadline_tick), horizon)
         ul_ticks = np.arange(cap, dead - 1 - p)
         dl_ticks = np.arange(cap + 1 + p, dead)
         if ul_ticks.size == 0 or dl_ticks.size == 0:
             continue
         n_frames += 1
+        frame_rows.append(int(row))
         u0 = nv
         nv += ul_ticks.size
         v0 = nv
@@ -128,11 +156,24 @@ def build_offline_lp(trace: Trace) -> OfflineLp:
             dl_cap.append((int(k), v0 + j, coef))
             if j > 0:
                 dl_cap.append((int(k), v0 + j - 1, -coef))
+            dl_steps.append((int(k), v0 + j, v0 + j - 1 if j > 0 else -1))
             ju = min(int(k) - 1 - p - cap, ul_ticks.size - 1)  # V_k <= U_{k-1-p}
             add_row([(v0 + j, 1.0), (u0 + ju, -1.0)], 0.0)
         objective.append(v0 + dl_ticks.size - 1)
+    if dl_steps and n_ul_dl < n_ul:
+        # y_k >= V_k - V_k-1: a tick that carries any state frame holds a DL exchange, which
+        # leaves the UL PPDU at most n_ul_dl of the n_ul symbols.
+        y0 = nv
+        nv += horizon
+        for k, v, v_prev in dl_steps:
+            add_row([(v, 1.0), (v_prev, -1.0), (y0 + k, -1.0)] if v_prev >= 0
+                    else [(v, 1.0), (y0 + k, -1.0)], 0.0)  # fmt: skip
+        for k in sorted({k for k, _, _ in dl_steps}):
+            ul_cap.append((k, y0 + k, (n_ul - n_ul_dl) / n_ul))
+    cap_rows: list[tuple[NDArray, NDArray]] = []
     for entries in (ul_cap, dl_cap):
         if not entries:
+            cap_rows.append((np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)))
             continue
         arr = np.array(entries)
         ticks = arr[:, 0].astype(np.int64)
@@ -141,6 +182,7 @@ def build_offline_lp(trace: Trace) -> OfflineLp:
         cols.append(arr[:, 1].astype(np.int64))
         vals.append(arr[:, 2])
         b.extend([1.0] * uniq.size)
+        cap_rows.append((r + np.arange(uniq.size), uniq))
         r += uniq.size
     A = (
         sp.csc_matrix(
@@ -151,7 +193,18 @@ def build_offline_lp(trace: Trace) -> OfflineLp:
     )
     c = np.zeros(nv)
     c[objective] = 1.0
-    return OfflineLp(c=c, A=A, b=np.asarray(b, dtype=float), n_frames=n_frames)
+    return OfflineLp(
+        c=c,
+        A=A,
+        b=np.asarray(b, dtype=float),
+        n_frames=n_frames,
+        frame_rows=np.asarray(frame_rows, dtype=np.int64),
+        objective_vars=np.asarray(objective, dtype=np.int64),
+        ul_rows=cap_rows[0][0],
+        ul_ticks=cap_rows[0][1],
+        dl_rows=cap_rows[1][0],
+        dl_ticks=cap_rows[1][1],
+    )
 
 
 def _solve(lp: OfflineLp, solver: str) -> tuple[float, str]:
@@ -237,3 +290,69 @@ def offline_optimum(trace: Trace, *, solver: str = "highs") -> OfflineResult:
         n_frames=lp.n_frames,
         n_frames_admitted=len(trace.frames),
     )
+
+
+@dataclass(frozen=True)
+class AirtimePrices:
+    """``eq_lp`` solved with its duals: what airtime is worth, in frames delivered in time.
+
+    Attributes
+    ----------
+    optimum:
+        The LP optimum (frames).
+    ticks:
+        One row per tick: ``ul_price`` and ``dl_price``, the dual prices of the tick's UL and
+        DL capacity rows, i.e. how many more frames one more full band of UL (DL) PPDU in
+        that tick would deliver (0 when the tick has spare capacity).
+    frames:
+        The LP's frames (the trace's frame table rows it holds) with ``delivered`` (``V_f``
+        at the deadline, in [0, 1]), ``ul_work`` (full-band UL ticks the camera frame needs
+        at the station's MCS at capture) and ``ul_bill`` (the cheapest UL airtime of the
+        frame at the prices: ``min_k ul_price_k * work_fk`` over its window).
+    """
+
+    optimum: float
+    ticks: pd.DataFrame
+    frames: pd.DataFrame
+
+
+def airtime_prices(trace: Trace) -> AirtimePrices:
+    """Solve ``eq_lp`` with HiGHS and read the dual prices of the per-tick capacity rows.
+
+    By LP duality a frame the optimum delivers pays for its airtime at these prices with the
+    value it creates (1 frame), and one left out would cost more than that: ``ul_bill`` is
+    a lower bound of that cost (the UL part at the cheapest tick of the frame's window).
+    """
+    from scipy.optimize import linprog
+
+    lp = build_offline_lp(trace)
+    horizon = trace.horizon_ticks
+    ticks = pd.DataFrame({"tick": np.arange(horizon), "ul_price": 0.0, "dl_price": 0.0})
+    frames = trace.frames.loc[lp.frame_rows].reset_index(drop=True)
+    if lp.n_variables == 0:
+        frames = frames.assign(delivered=0.0, ul_work=0.0, ul_bill=0.0)
+        return AirtimePrices(0.0, ticks, frames)
+    res = linprog(-lp.c, A_ub=lp.A, b_ub=lp.b, bounds=(0.0, 1.0), method="highs")
+    if res.status != 0:
+        raise ValueError(f"the offline LP could not be solved: {res.message}")
+    duals = -np.asarray(res.ineqlin.marginals)  # prices of "<=" rows of the max problem
+    ticks.loc[lp.ul_ticks, "ul_price"] = duals[lp.ul_rows]
+    ticks.loc[lp.dl_ticks, "dl_price"] = duals[lp.dl_rows]
+    cfg = trace.config
+    mac, phy = cfg.mac, cfg.phy
+    p = cfg.traffic.processing_ticks(mac.tick_us)
+    n_ul = mac.ul_data_symbols(1, 0, phy.symbol_us, phy.bandwidth_mhz)
+    full = float(phy.plan.full_band_data_subcarriers)
+    ul_price = ticks["ul_price"].to_numpy()
+    work, bill = [], []
+    for f in frames.itertuples(index=False):
+        window = np.arange(f.capture_tick, min(f.deadline_tick, horizon) - 1 - p)
+        w = f.ul_bits / (trace.ul_bpss[f.station, window] * n_ul * full)
+        work.append(float(w[0]))
+        bill.append(float(np.min(ul_price[window] * w)))
+    frames = frames.assign(
+        delivered=np.clip(np.asarray(res.x)[lp.objective_vars], 0.0, 1.0),
+        ul_work=work,
+        ul_bill=bill,
+    )
+    return AirtimePrices(float(-res.fun), ticks, frames)

@@ -5,7 +5,10 @@ frame expires ``1 + processing`` ticks before its deadline, the least its state 
 and allocators see that earlier deadline for it); if state
 frames are queued, the allocator lays out the DL MU PPDU and each scheduled station is served
 ``N_SD(r) * e_dl`` bits (``eq_serve``); then, if camera frames are queued, it lays out the UL
-TB PPDU with every data symbol left in the tick (``eq_air_ul``). A camera frame served in full
+TB PPDU with every data symbol left in the tick (``eq_air_ul``): the allocator sizes RUs with
+the symbols left if every queued station were triggered, and the PPDU then gets the symbols
+left by the Trigger frame and multi-STA BlockAck of the stations it scheduled (their User Info
+and per-station fields are what grow with the users). A camera frame served in full
 at tick ``k`` queues its state frame at tick ``k + 1 + processing``; a state frame served in
 full at tick ``k`` is at the robot at time ``k + 1`` (ticks). A frame whose channel fate (drawn
 from the hop's delivery probability, ``eq_per``) is "lost" is sent but never delivered.
@@ -149,6 +152,7 @@ class ChannelEngine:
         self.delivered: list[list[Frame]] = [[] for _ in range(n_stations)]
         self.stats = _Stats(n_stations)
         self.busy_us = 0.0
+        self._airtime_cache: dict[tuple[str, int, int], float] = {}
         self.layouts: list[tuple[int, str, NDArray[np.int64]]] | None = None
 
     # ------------------------------------------------------------------ frames
@@ -214,7 +218,7 @@ class ChannelEngine:
         self, queues: list[deque[Frame]], ul: bool, k: int, layout: NDArray, e_sc: NDArray
     ) -> None:
         bits = self._sd[layout] * e_sc
-        for i in np.flatnonzero(layout >= 0):
+        for i in np.flatnonzero(layout >= 0).tolist():
             budget = bits[i]
             q = queues[i]
             done: list[Frame] = []
@@ -250,7 +254,10 @@ class ChannelEngine:
     def run_tick(self, ul_bpss: NDArray, dl_bpss: NDArray) -> None:
         """Advance one tick with the stations' bits per subcarrier-symbol for UL and DL."""
         k = self.tick
-        mac, bw = self.config.mac, self.config.phy.bandwidth_mhz
+        if not any(self.ul_q) and not any(self.dl_q):  # an idle tick
+            self.tick = k + 1
+            return
+        mac = self.config.mac
         for queues, reserve in ((self.ul_q, self.dl_reserve_ticks), (self.dl_q, 0)):
             for q in queues:
                 if q and any(f.deadline_tick - reserve <= k for f in q):
@@ -271,28 +278,47 @@ class ChannelEngine:
                 self.stats.dl_ru_us += np.where(
                     layout >= 0, self._sd[layout] / self._full_sd * data_us, 0.0
                 )
-                busy += mac.dl_exchange_us(n_dl, self.symbol_us, bw)
+                busy += self._airtime("dl", n_dl, 0)
         n_ul = sum(1 for q in self.ul_q if q)
         if n_ul:
-            n_sym = mac.ul_data_symbols(min(n_ul, self._max_users), n_dl, self.symbol_us, bw)
+            # The allocator sizes RUs with the PPDU length it would get if every queued station
+            # were triggered (a lower bound); the Trigger frame and the multi-STA BlockAck then
+            # address the stations it scheduled, so the PPDU gets the symbols that leaves.
+            n_sym = self._airtime("sym", min(n_ul, self._max_users), n_dl)
             if n_sym > 0:
-                e_ul = ul_bpss * n_sym
-                demand = self._demand(self.ul_q, True, k, e_ul)
+                demand = self._demand(self.ul_q, True, k, ul_bpss * n_sym)
                 if demand is not None:
                     layout = self.ul_allocator.allocate(demand)
                     self._record(k, "ul", layout)
-                    if np.any(layout >= 0):
-                        self._serve(self.ul_q, True, k, layout, e_ul)
+                    n_sched = int(np.count_nonzero(layout >= 0))
+                    if n_sched:
+                        n_sym = self._airtime("sym", n_sched, n_dl)
+                        self._serve(self.ul_q, True, k, layout, ul_bpss * n_sym)
                         data_us = n_sym * self.symbol_us
                         self.stats.ul_ru_us += np.where(
                             layout >= 0, self._sd[layout] / self._full_sd * data_us, 0.0
                         )
-                        busy += mac.ul_overhead_us(min(n_ul, self._max_users), self.symbol_us)
+                        busy += self._airtime("ul", n_sched, 0)
                         busy += data_us
         if busy:
             busy += mac.channel_access_us
         self.busy_us += busy
         self.tick = k + 1
+
+    def _airtime(self, what: str, n_users: int, n_dl: int) -> float:
+        """``MacTiming`` figures of a tick, cached by user counts (they are pure functions)."""
+        key = (what, n_users, n_dl)
+        value = self._airtime_cache.get(key)
+        if value is None:
+            mac, bw, sym = self.config.mac, self.config.phy.bandwidth_mhz, self.symbol_us
+            if what == "sym":
+                value = mac.ul_data_symbols(n_users, n_dl, sym, bw)
+            elif what == "ul":
+                value = mac.ul_overhead_us(n_users, sym)
+            else:
+                value = mac.dl_exchange_us(n_users, sym, bw)
+            self._airtime_cache[key] = value
+        return value
 
     def _record(self, k: int, direction: str, layout: NDArray[np.int64]) -> None:
         if self.layouts is not None:

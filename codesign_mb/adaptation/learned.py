@@ -1,0 +1,291 @@
+"""The learned control-aware QoS policy of stage C (``eq_q_t_pol2``): a trained SB3 SAC actor.
+
+The agent's observation and action are fixed by a :class:`QosInterface`, shared by the
+training env (:class:`codesign_mb.pipeline.stage_c.QosAdaptationEnv`) and the deployed
+:class:`LearnedQosPolicy`, so both see exactly the same numbers:
+
+* observation: ``(y_{t-1}, zeta_{t-1} / age_scale)`` (``eq_q_pol``), then the optional extra
+  features of a :class:`QosFeatures` (e.g. a model-based predictor's error covariance);
+* action in ``[-1, 1]``: the reliability ``q_t = q_min + (a + 1) / 2 (q_max - q_min)`` and,
+  when learned, the latency ``tau_t = round((a' + 1) / 2 * max_latency_steps)``; otherwise
+  the latency is fixed (one step, as in the paper).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Protocol, runtime_checkable
+
+import numpy as np
+from numpy.typing import NDArray
+
+from codesign_mb.network.qos import QosRequest
+
+__all__ = [
+    "QOS_FEATURES",
+    "ElapsedTimeFeature",
+    "LearnedQosPolicy",
+    "QosFeatures",
+    "QosInterface",
+    "make_features",
+]
+
+
+@runtime_checkable
+class QosFeatures(Protocol):
+    """Extra inputs of a learned QoS policy beyond ``(y_{t-1}, zeta_{t-1})``.
+
+    Called once per packet with what the QoS policy is given; it may read any object it was
+    built with (e.g. the estimator, for its covariance). ``dim`` is the feature length.
+    """
+
+    dim: int
+
+    def reset(self) -> None:
+        """Start an episode."""
+        ...
+
+    def __call__(self, observation: NDArray[np.float64], age: int) -> NDArray[np.float64]:
+        """The features for the next request."""
+        ...
+
+
+class ElapsedTimeFeature:
+    """The episode time ``t / horizon`` of the next packet: lets the policy know the phase."""
+
+    dim = 1
+
+    def __init__(self, horizon: int) -> None:
+        if horizon < 1:
+            raise ValueError(f"horizon must be >= 1, got {horizon}")
+        self.horizon = int(horizon)
+        self._t = 0
+
+    @classmethod
+    def from_env(cls, env: Any) -> ElapsedTimeFeature:
+        """For a plant with a ``horizon``."""
+        horizon = getattr(env.unwrapped, "horizon", None)
+        if horizon is None:
+            raise ValueError("the elapsed_time feature needs a plant with a horizon")
+        return cls(int(horizon))
+
+    def reset(self) -> None:
+        self._t = 0
+
+    def __call__(self, observation: NDArray[np.float64], age: int) -> NDArray[np.float64]:
+        t = self._t
+        self._t += 1
+        return np.array([t / self.horizon])
+
+
+QOS_FEATURES: dict[str, str] = {
+    "elapsed_time": "codesign_mb.adaptation.learned:ElapsedTimeFeature.from_env",
+}
+"""Feature kind -> factory ``"module:callable"`` called as ``callable(env, **options)``.
+
+A feature must be computable at the edge from what the QoS policy is given, ``(y, zeta)``
+(and its own state, e.g. a replica of a model-based predictor fed with the same stream), so
+that the deployed :class:`LearnedQosPolicy` is self-contained.
+"""
+
+
+def make_features(
+    kind: str | None, env: Any, options: dict[str, Any] | None = None
+) -> QosFeatures | None:
+    """Build the :class:`QosFeatures` of ``kind`` for the plant ``env`` (``None``: none)."""
+    if kind is None or kind == "none":
+        return None
+    if kind not in QOS_FEATURES:
+        raise ValueError(
+            f"unknown QoS feature kind {kind!r}; expected one of none, {', '.join(QOS_FEATURES)}"
+        )
+    from codesign_mb.evaluation.evaluate import Factory
+
+    return Factory(QOS_FEATURES[kind], dict(options or {}))(env)
+
+
+@dataclass(frozen=True)
+class QosInterface:
+    """How a learned QoS policy sees the link and what its action means.
+
+    Parameters
+    ----------
+    remote_dim:
+        Length of ``y`` (the plant's remote part).
+    feature_dim:
+        Length of the extra features (0 without a :class:`QosFeatures`).
+    latency_steps:
+        The fixed latency ``tau`` when it is not learned (the paper: 1 step).
+    learn_latency:
+        Whether the action has a second entry choosing ``tau`` in ``[0, max_latency_steps]``.
+    max_latency_steps:
+        Largest learned latency.
+    min_reliability, max_reliability:
+        The range the reliability action is mapped onto.
+    age_scale:
+        The age enters the observation as ``zeta / age_scale``.
+    """
+
+    remote_dim: int
+    feature_dim: int = 0
+    latency_steps: int = 1
+    learn_latency: bool = False
+    max_latency_steps: int = 4
+    min_reliability: float = 0.0
+    max_reliability: float = 1.0
+    age_scale: float = 10.0
+
+    def __post_init__(self) -> None:
+        if self.remote_dim < 1:
+            raise ValueError(f"remote_dim must be >= 1, got {self.remote_dim}")
+        if self.feature_dim < 0:
+            raise ValueError(f"feature_dim must be >= 0, got {self.feature_dim}")
+        if self.latency_steps < 0:
+            raise ValueError(f"latency_steps must be >= 0, got {self.latency_steps}")
+        if self.max_latency_steps < 0:
+            raise ValueError(f"max_latency_steps must be >= 0, got {self.max_latency_steps}")
+        if not 0.0 <= self.min_reliability <= self.max_reliability <= 1.0:
+            raise ValueError(
+                "need 0 <= min_reliability <= max_reliability <= 1, got "
+                f"{self.min_reliability}, {self.max_reliability}"
+            )
+        if self.age_scale <= 0:
+            raise ValueError(f"age_scale must be > 0, got {self.age_scale}")
+
+    @property
+    def observation_dim(self) -> int:
+        return self.remote_dim + 1 + self.feature_dim
+
+    @property
+    def action_dim(self) -> int:
+        return 2 if self.learn_latency else 1
+
+    def observation(
+        self,
+        observation: NDArray[np.float64],
+        age: int,
+        features: NDArray[np.float64] | None = None,
+    ) -> NDArray[np.float32]:
+        """The agent's observation for ``(y_{t-1}, zeta_{t-1})`` and the extra features."""
+        y = np.asarray(observation, dtype=np.float32).reshape(-1)
+        if y.shape[0] != self.remote_dim:
+            raise ValueError(f"observation must have {self.remote_dim} entries, got {y.shape[0]}")
+        parts = [y, np.array([age / self.age_scale], dtype=np.float32)]
+        if self.feature_dim:
+            if features is None:
+                raise ValueError(f"this QoS policy needs {self.feature_dim} extra features")
+            f = np.asarray(features, dtype=np.float32).reshape(-1)
+            if f.shape[0] != self.feature_dim:
+                raise ValueError(f"features must have {self.feature_dim} entries, got {f.shape[0]}")
+            parts.append(f)
+        return np.concatenate(parts)
+
+    def request(self, action: NDArray) -> QosRequest:
+        """The :class:`QosRequest` for an agent action in ``[-1, 1]``."""
+        a = np.clip(np.asarray(action, dtype=float).reshape(-1), -1.0, 1.0)
+        u = (a[0] + 1.0) / 2.0
+        q = self.min_reliability + u * (self.max_reliability - self.min_reliability)
+        tau = self.latency_steps
+        if self.learn_latency:
+            tau = round((a[1] + 1.0) / 2.0 * self.max_latency_steps)
+        return QosRequest(float(np.clip(q, 0.0, 1.0)), int(tau))
+
+
+class LearnedQosPolicy:
+    """A :class:`~codesign_mb.adaptation.QosPolicy` from a trained SAC QoS agent (stage C).
+
+    Parameters
+    ----------
+    model:
+        The SB3 model (``predict``).
+    interface:
+        The :class:`QosInterface` it was trained with.
+    features:
+        The same kind of :class:`QosFeatures` it was trained with (bound to the deployed
+        estimator if it reads one), or ``None`` when ``interface.feature_dim == 0``.
+    deterministic:
+        Use the actor's mean (default).
+    """
+
+    def __init__(
+        self,
+        model: Any,
+        interface: QosInterface,
+        *,
+        features: QosFeatures | None = None,
+        deterministic: bool = True,
+    ) -> None:
+        got = 0 if features is None else int(features.dim)
+        if got != interface.feature_dim:
+            raise ValueError(
+                f"the QoS policy was trained with {interface.feature_dim} extra features, got {got}"
+            )
+        self.model = model
+        self.interface = interface
+        self.features = features
+        self.deterministic = deterministic
+
+    def reset(self, *, seed: int | None = None) -> None:
+        if self.features is not None:
+            self.features.reset()
+
+    def request(self, observation: NDArray[np.float64], age: int) -> QosRequest:
+        extra = None if self.features is None else self.features(observation, age)
+        obs = self.interface.observation(observation, age, extra)
+        action, _ = self.model.predict(obs, deterministic=self.deterministic)
+        return self.interface.request(action)
+
+    # -- persistence ------------------------------------------------------------------------
+    def save(self, directory: str | Path, *, extra: dict[str, Any] | None = None) -> Path:
+        """Write ``model.zip`` and ``qos_policy.json`` (the interface) into ``directory``."""
+        from codesign_mb.evaluation.results import atomic_write
+
+        directory = Path(directory)
+        directory.mkdir(parents=True, exist_ok=True)
+        self.model.save(directory / "model.zip")
+        meta = {"interface": dataclasses.asdict(self.interface), **(extra or {})}
+        with atomic_write(directory / "qos_policy.json", "w") as fh:
+            json.dump(meta, fh, indent=2)
+        return directory
+
+    @staticmethod
+    def read_meta(directory: str | Path) -> dict[str, Any]:
+        """The ``qos_policy.json`` of a saved policy."""
+        directory = Path(directory)
+        meta_path = directory / "qos_policy.json"
+        if not meta_path.is_file() or not (directory / "model.zip").is_file():
+            raise ValueError(
+                f"{str(directory)!r} holds no QoS policy (model.zip + qos_policy.json); "
+                "train one with `codesign train c`"
+            )
+        return json.loads(meta_path.read_text())
+
+    @classmethod
+    def from_env(
+        cls, env: Any, directory: str | Path, *, deterministic: bool = True
+    ) -> LearnedQosPolicy:
+        """Load a saved policy and rebuild its recorded features for the plant ``env``."""
+        meta = cls.read_meta(directory)
+        spec = meta.get("features") or {}
+        features = make_features(spec.get("kind"), env, spec.get("options"))
+        return cls.load(directory, features=features, deterministic=deterministic)
+
+    @classmethod
+    def load(
+        cls,
+        directory: str | Path,
+        *,
+        features: QosFeatures | None = None,
+        deterministic: bool = True,
+    ) -> LearnedQosPolicy:
+        """Load a policy saved by :meth:`save` (or by ``codesign train c``)."""
+        from stable_baselines3 import SAC
+
+        directory = Path(directory)
+        meta = cls.read_meta(directory)
+        interface = QosInterface(**meta["interface"])
+        model = SAC.load(directory / "model.zip", device="cpu")
+        return cls(model, interface, features=features, deterministic=deterministic)

@@ -1,0 +1,223 @@
+"""``codesign train <stage>``: the model-free pipeline of paper.tex sec. 4, stage by stage.
+
+=====  ==========================================================  ===============================
+stage  what                                                        default output
+=====  ==========================================================  ===============================
+a      SAC ideal controller on the perfect state                   checkpoints/stage_a
+b      MLP + LSTM estimators under the delay distribution          checkpoints/stage_b
+c      SAC QoS policy for a controller/estimator pair              checkpoints/stage_c_<estimator>
+d      synthesis: estimator under the learned QoS, QoS re-trained  checkpoints/stage_d
+=====  ==========================================================  ===============================
+
+Outputs go under the package's ``models`` folder unless ``--out`` says otherwise; the work
+folder (``runs/train/<stage>``: latest model, replay buffer, step counter) makes ``--resume``
+continue an interrupted run where its last checkpoint left it.
+"""
+
+from __future__ import annotations
+
+import json
+import shlex
+import sys
+from pathlib import Path
+from typing import Annotated, Any
+
+import typer
+
+from codesign_mb.cli.common import (
+    ConfigOption,
+    JsonOption,
+    cli_errors,
+    emit,
+    load_config,
+    note,
+    track,
+)
+
+__all__ = ["register"]
+
+STAGES = ("a", "b", "c", "d")
+
+
+def _parse_value(text: str) -> Any:
+    """A ``--set`` value: JSON when it parses (numbers, booleans, lists, tables), else a string."""
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError:
+        return text
+
+
+def _overrides(assignments: list[str]) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for item in assignments:
+        key, sep, value = item.partition("=")
+        if not sep or not key.strip():
+            raise ValueError(f"--set expects key=value (dotted keys allowed), got {item!r}")
+        out[key.strip()] = _parse_value(value.strip())
+    return out
+
+
+def _config_class(stage: str) -> type:
+    if stage == "a":
+        from codesign_mb.pipeline.stage_a import StageAConfig
+
+        return StageAConfig
+    if stage == "b":
+        from codesign_mb.pipeline.stage_b import StageBConfig
+
+        return StageBConfig
+    if stage == "c":
+        from codesign_mb.pipeline.stage_c import StageCConfig
+
+        return StageCConfig
+    from codesign_mb.pipeline.stage_d import StageDConfig
+
+    return StageDConfig
+
+
+def default_out(stage: str, config: Any) -> Path:
+    """Where a stage writes by default: ``<models>/checkpoints/stage_<x>``."""
+    from codesign_mb.pipeline.components import models_dir
+
+    name = f"stage_{stage}"
+    if stage == "c":
+        name = f"stage_c_{config.estimator.kind}"
+    return models_dir() / "checkpoints" / name
+
+
+def run_stage(
+    stage: str,
+    config: Any,
+    *,
+    out_dir: Path,
+    work_dir: Path,
+    resume: bool,
+    progress: Any,
+    command: str | None,
+) -> dict[str, Any]:
+    """Run one stage's trainer (what the command does after parsing)."""
+    import torch
+
+    torch.set_num_threads(1)
+    kwargs = {
+        "out_dir": out_dir,
+        "work_dir": work_dir,
+        "resume": resume,
+        "progress": progress,
+        "command": command,
+    }
+    if stage == "a":
+        from codesign_mb.pipeline.stage_a import train_stage_a
+
+        return train_stage_a(config, **kwargs)
+    if stage == "b":
+        from codesign_mb.pipeline.stage_b import train_stage_b
+
+        return train_stage_b(config, **kwargs)
+    if stage == "c":
+        from codesign_mb.pipeline.stage_c import train_stage_c
+
+        return train_stage_c(config, **kwargs)
+    from codesign_mb.pipeline.stage_d import train_stage_d
+
+    return train_stage_d(config, **kwargs)
+
+
+def register(app: typer.Typer) -> None:
+    @app.command("train")
+    @cli_errors
+    def train(
+        stage: Annotated[str, typer.Argument(help="Pipeline stage: a, b, c or d.")],
+        config: ConfigOption = None,
+        steps: Annotated[
+            int | None,
+            typer.Option("--steps", help="Total env steps (stages a, c, d); overrides the config."),
+        ] = None,
+        seed: Annotated[int | None, typer.Option("--seed", help="Root seed.")] = None,
+        estimator: Annotated[
+            str | None,
+            typer.Option(
+                "--estimator",
+                help="Stage c: the estimator kind the QoS policy is learned for "
+                "(mlp, lstm, none, predictor); its checkpoint comes from the config.",
+            ),
+        ] = None,
+        set_: Annotated[
+            list[str] | None,
+            typer.Option(
+                "--set",
+                help="Config override key=value (dotted keys, JSON values), repeatable: "
+                "--set plant.options.belt_speed_mps=0.6",
+            ),
+        ] = None,
+        out: Annotated[
+            Path | None,
+            typer.Option(
+                "--out", "-o", help="Output (shipped checkpoint) folder.", file_okay=False
+            ),
+        ] = None,
+        work_dir: Annotated[
+            Path | None,
+            typer.Option(
+                "--work-dir",
+                help="Work folder for resume (default runs/train/<x>).",
+                file_okay=False,
+            ),
+        ] = None,
+        resume: Annotated[
+            bool, typer.Option("--resume", help="Continue from the work folder's checkpoint.")
+        ] = False,
+        as_json: JsonOption = False,
+    ) -> None:
+        """Train one stage of the model-free pipeline (checkpoint, curve, resumable)."""
+        stage = stage.lower()
+        if stage not in STAGES:
+            raise ValueError(f"stage must be one of {', '.join(STAGES)}, got {stage!r}")
+        overrides = _overrides(set_ or [])
+        if seed is not None:
+            overrides["seed"] = seed
+        if steps is not None:
+            if stage == "b":
+                raise ValueError("--steps does not apply to stage b (set train_episodes)")
+            overrides["total_steps" if stage != "d" else "qos.total_steps"] = steps
+        if estimator is not None:
+            if stage != "c":
+                raise ValueError("--estimator applies to stage c only")
+            overrides["estimator.kind"] = estimator
+            if estimator in ("none", "plain", "predictor"):
+                overrides["estimator.checkpoint"] = None
+        cfg = load_config(_config_class(stage), config, {}, section=stage)
+        if overrides:
+            cfg = _apply(cfg, overrides)
+        out_dir = out or default_out(stage, cfg)
+        work = work_dir or Path("runs") / "train" / out_dir.name
+        command = "codesign " + " ".join(shlex.quote(a) for a in sys.argv[1:])
+        result = run_stage(
+            stage,
+            cfg,
+            out_dir=out_dir,
+            work_dir=work,
+            resume=resume,
+            progress=lambda it, total=None, description="": track(
+                it, total=total, description=description, disable=as_json
+            ),
+            command=command,
+        )
+        note(f"stage {stage}: checkpoint written to {out_dir}")
+        emit(result, as_json=as_json, title=f"stage {stage}")
+
+
+def _apply(config: Any, overrides: dict[str, Any]) -> Any:
+    """Re-build ``config`` with dotted overrides (``None`` values clear a field)."""
+    from codesign_mb.config import from_mapping, to_mapping
+
+    data = to_mapping(config)
+    for key, value in overrides.items():
+        *parents, leaf = key.split(".")
+        node = data
+        for part in parents:
+            if not isinstance(node.get(part), dict):
+                node[part] = {}
+            node = node[part]
+        node[leaf] = value
+    return from_mapping(type(config), data)

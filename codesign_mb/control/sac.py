@@ -1,0 +1,54 @@
+"""The learned ideal controller of stage A (``eq_control_ideal``): a trained SB3 SAC policy."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+__all__ = ["SacController"]
+
+
+class SacController:
+    """A :class:`~codesign_mb.control.Controller` that runs a stable-baselines3 SAC actor.
+
+    The actor was trained on the plant's perfect-state observation (stage A); composed with
+    an estimator it gives the QoS-aware controller of ``eq_c_pol2``. Actions are the actor's
+    mean (``deterministic=True``) unless asked otherwise, so a rollout is reproducible.
+
+    Parameters
+    ----------
+    model:
+        A loaded :class:`stable_baselines3.SAC` (or any SB3 model with ``predict``).
+    deterministic:
+        Use the mean action (default) instead of sampling the squashed Gaussian.
+    """
+
+    def __init__(self, model: Any, *, deterministic: bool = True) -> None:
+        self.model = model
+        self.deterministic = deterministic
+        space = model.observation_space
+        self._obs_shape = tuple(space.shape)
+
+    @classmethod
+    def load(cls, path: str | Path, *, deterministic: bool = True) -> SacController:
+        """Load an SB3 ``.zip`` saved by ``codesign train a`` (actor only, on the CPU)."""
+        from stable_baselines3 import SAC
+
+        path = Path(path)
+        if not path.is_file():
+            raise ValueError(
+                f"SAC checkpoint {str(path)!r} does not exist; train one with `codesign train a`"
+            )
+        model = SAC.load(path, device="cpu")
+        return cls(model, deterministic=deterministic)
+
+    def reset(self, *, seed: int | None = None) -> None:
+        return None
+
+    def act(self, observation: NDArray[np.float64]) -> NDArray[np.float64]:
+        obs = np.asarray(observation, dtype=np.float32).reshape(self._obs_shape)
+        action, _ = self.model.predict(obs, deterministic=self.deterministic)
+        return np.asarray(action, dtype=np.float64)

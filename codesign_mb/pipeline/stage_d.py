@@ -1,0 +1,246 @@
+"""Stage D, co-design synthesis (paper.tex sec. 4.4).
+
+1. Continue the estimator's training (``eq_control_estimation``) with the generic delay
+   distribution ``T`` replaced by the learned QoS policy's delivery pattern: episodes are
+   collected through the link with the stage-C policy choosing ``q_t`` and the controller
+   acting on the estimator (the deployed loop), optionally mixed with fresh episodes from
+   ``T`` so the estimator keeps covering other patterns; the fit continues from the stage-B
+   weights and normalisation.
+2. Re-train the QoS policy (``eq_q_t_pol2``) for the new estimator, warm-started from the
+   stage-C policy.
+
+Any learned estimator (MLP or LSTM) and any controller can be given; the model-based stack
+has no estimator weights to continue, so only step 2 applies to it (run stage C with
+``warm_start``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from codesign_mb.adaptation.learned import LearnedQosPolicy
+from codesign_mb.estimation.learned import load_estimator
+from codesign_mb.pipeline.components import ComponentSpec, build, resolve_checkpoint
+from codesign_mb.pipeline.plants import PlantSpec, make_plant
+from codesign_mb.pipeline.stage_b import (
+    DelayDistribution,
+    EpisodeData,
+    EstimatorTraining,
+    RandomQos,
+    collect_episodes,
+    estimator_mse,
+    fit_estimator,
+    position_slice,
+)
+from codesign_mb.pipeline.stage_c import StageCConfig, train_stage_c
+from codesign_mb.pipeline.training import Progress, no_progress, seeded_torch, write_json
+
+__all__ = ["StageDConfig", "train_stage_d"]
+
+
+@dataclass(frozen=True)
+class StageDConfig:
+    """Configuration of stage D.
+
+    Parameters
+    ----------
+    plant:
+        The plant.
+    controller:
+        The ideal controller (stage A).
+    estimator:
+        The learned estimator to continue (stage B's ``mlp.pt`` by default).
+    qos_policy:
+        The learned QoS policy folder (stage C) whose deliveries the estimator adapts to;
+        also the warm start of the re-trained policy.
+    episodes, val_episodes:
+        Episodes collected under the learned QoS policy (fit / held out).
+    sample_qos:
+        Sample the QoS policy's actions (more varied delivery patterns) instead of its mean.
+    mix_episodes, delays:
+        Episodes from the generic distribution ``T`` mixed into the fit (0: none).
+    estimator_training:
+        Optimiser settings of the continued fit.
+    qos:
+        Stage-C settings of the re-training; its ``plant``, ``controller``, ``estimator``
+        and ``warm_start`` are set by this stage.
+    seed:
+        Root seed.
+    """
+
+    plant: PlantSpec = field(default_factory=PlantSpec)
+    controller: ComponentSpec = field(
+        default_factory=lambda: ComponentSpec("sac", "checkpoints/stage_a/model.zip")
+    )
+    estimator: ComponentSpec = field(
+        default_factory=lambda: ComponentSpec("mlp", "checkpoints/stage_b/mlp.pt")
+    )
+    qos_policy: str = "checkpoints/stage_c_mlp"
+    episodes: int = 200
+    val_episodes: int = 50
+    sample_qos: bool = True
+    mix_episodes: int = 100
+    delays: DelayDistribution = field(default_factory=DelayDistribution)
+    estimator_training: EstimatorTraining = field(
+        default_factory=lambda: EstimatorTraining(epochs=20, learning_rate=3e-4)
+    )
+    qos: StageCConfig = field(default_factory=lambda: StageCConfig(total_steps=20_000))
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.estimator.kind not in ("mlp", "lstm"):
+            raise ValueError(
+                f"stage D continues a learned estimator (mlp or lstm), got {self.estimator.kind!r}"
+            )
+        if not self.estimator.checkpoint:
+            raise ValueError("stage D needs estimator.checkpoint (the stage-B estimator)")
+        for name in ("episodes", "val_episodes"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if self.mix_episodes < 0:
+            raise ValueError(f"mix_episodes must be >= 0, got {self.mix_episodes}")
+
+
+def _cached(path: Path, make: Any) -> EpisodeData:
+    if path.is_file():
+        return EpisodeData.load(path)
+    data = make()
+    data.save(path)
+    return data
+
+
+def train_stage_d(
+    config: StageDConfig,
+    *,
+    out_dir: str | Path,
+    work_dir: str | Path,
+    resume: bool = False,
+    progress: Progress = no_progress,
+    command: str | None = None,
+) -> dict[str, Any]:
+    """Run the synthesis; write ``<kind>.pt``, ``qos/`` and ``training.json`` to ``out_dir``."""
+    from codesign_mb.config import to_mapping
+    from codesign_mb.evaluation.results import package_version
+
+    out_dir, work_dir = Path(out_dir), Path(work_dir)
+    work_dir.mkdir(parents=True, exist_ok=True)
+    if not resume:
+        for old in work_dir.glob("*"):
+            if old.suffix in (".npz", ".pt"):
+                old.unlink()
+    started = time.perf_counter()
+    kind = config.estimator.kind
+    probe = make_plant(config.plant)
+    controller = build("controller", config.controller, probe)
+    qos_dir = resolve_checkpoint(config.qos_policy)
+    remote, position = probe.unwrapped.remote_slice, position_slice(probe)
+
+    # 1. the estimator under the learned QoS policy's deliveries
+    estimator_ckpt = work_dir / f"{kind}.pt"
+    estimator = load_estimator(resolve_checkpoint(config.estimator.checkpoint))
+    qos_policy = LearnedQosPolicy.from_env(probe, qos_dir, deterministic=not config.sample_qos)
+
+    def under_policy(name: str, episodes: int, seed: int) -> EpisodeData:
+        behaviour = load_estimator(resolve_checkpoint(config.estimator.checkpoint))
+
+        def make() -> EpisodeData:
+            with seeded_torch(seed):  # the sampled QoS actions draw from torch's RNG
+                return collect_episodes(
+                    config.plant,
+                    controller,
+                    qos_policy,
+                    episodes=episodes,
+                    seed=seed,
+                    behaviour=behaviour,
+                )
+
+        return _cached(work_dir / f"{name}.npz", make)
+
+    t0 = time.perf_counter()
+    train = under_policy("train_policy", config.episodes, config.seed + 30)
+    val = under_policy("val_policy", config.val_episodes, config.seed + 40)
+    steps = {"train_policy": train.steps, "val_policy": val.steps}
+    data = EpisodeData().extend(train)
+    if config.mix_episodes:
+        mix = _cached(
+            work_dir / "train_mix.npz",
+            lambda: collect_episodes(
+                config.plant,
+                controller,
+                RandomQos(config.delays),
+                episodes=config.mix_episodes,
+                seed=config.seed + 50,
+            ),
+        )
+        steps["train_mix"] = mix.steps
+        data.extend(mix)
+    collect_s = time.perf_counter() - t0
+    before = estimator_mse(estimator, val, remote=remote, position=position)
+    if resume and estimator_ckpt.is_file():
+        estimator = load_estimator(estimator_ckpt)
+        curve: list[dict[str, float]] = []
+    else:
+        curve = fit_estimator(
+            estimator,
+            data,
+            val,
+            config.estimator_training,
+            seed=config.seed + 60,
+            fit_normalisation=False,
+            progress=progress,
+            description=f"stage D: {kind} under the learned QoS",
+        )
+        estimator.save(estimator_ckpt)
+    after = estimator_mse(estimator, val, remote=remote, position=position)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    estimator_path = estimator.save(out_dir / f"{kind}.pt")
+    estimator_s = time.perf_counter() - started
+
+    # 2. the QoS policy re-trained for the new estimator
+    qos_config = dataclasses.replace(
+        config.qos,
+        plant=config.plant,
+        controller=config.controller,
+        estimator=ComponentSpec(kind, str(estimator_path)),
+        warm_start=str(qos_dir),
+    )
+    qos_result = train_stage_c(
+        qos_config,
+        out_dir=out_dir / "qos",
+        work_dir=work_dir / "qos",
+        resume=resume,
+        progress=progress,
+        command=command,
+        stage="d",
+    )
+    meta = {
+        "stage": "d",
+        "command": command,
+        "seed": config.seed,
+        "estimator": {
+            "env_steps": int(sum(steps.values())),
+            "env_steps_by_dataset": steps,
+            "collection_wall_time_s": round(collect_s, 1),
+            "wall_time_s": round(estimator_s, 1),
+            "held_out_mse_under_learned_qos": {"before": before, "after": after},
+        },
+        "qos": qos_result,
+        "env_steps": int(sum(steps.values())) + int(qos_result["env_steps"]),
+        "wall_time_s": round(time.perf_counter() - started, 1),
+        "package_version": package_version(),
+        "config": to_mapping(config),
+    }
+    write_json(out_dir / "training.json", meta)
+    write_json(out_dir / "curve.json", {"estimator": curve})
+    probe.close()
+    return {
+        "env_steps": meta["env_steps"],
+        "wall_time_s": meta["wall_time_s"],
+        "estimator_mse_before": before["mse"],
+        "estimator_mse_after": after["mse"],
+        **{k: v for k, v in qos_result.items() if k.startswith("eval_")},
+    }

@@ -1,0 +1,292 @@
+"""SAC training machinery shared by stages A, C and D: chunks, checkpoints, resume, curves.
+
+A run has two folders:
+
+* the **work folder** (default ``runs/train/<stage>``, not shipped): the latest SB3 model,
+  its replay buffer and ``state.json`` (steps done, wall time, training curve). Training
+  proceeds in chunks of ``chunk_steps`` env steps; after each chunk all three are written
+  (atomically), so an interrupted run resumes from the last chunk with ``resume=True``;
+* the **output folder** (e.g. ``models/checkpoints/stage_a``, shipped): the final
+  ``model.zip``, ``training.json`` (command, seed, env steps, wall time, config, final
+  evaluation) and ``curve.json``.
+
+No RL algorithm is written here: this is SB3's :class:`~stable_baselines3.SAC` driven by
+``learn(chunk, reset_num_timesteps=False)``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import time
+from collections.abc import Callable, Iterable, Iterator, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+
+__all__ = [
+    "Progress",
+    "SacSpec",
+    "TrainingState",
+    "load_state",
+    "make_sac",
+    "no_progress",
+    "train_sac_in_chunks",
+    "write_json",
+    "write_output",
+]
+
+Progress = Callable[..., Iterable[Any]]
+"""``progress(iterable, *, total, description)``: :func:`codesign_mb.cli.common.track`'s shape."""
+
+
+def no_progress(
+    iterable: Iterable[Any], *, total: int | None = None, description: str = ""
+) -> Iterator[Any]:
+    """The silent :data:`Progress` (library default)."""
+    yield from iterable
+
+
+@dataclass(frozen=True)
+class SacSpec:
+    """Hyper-parameters of SB3's SAC (names as in :class:`stable_baselines3.SAC`).
+
+    ``ent_coef`` is ``"auto"``, ``"auto_<init>"`` or a number given as a string.
+    """
+
+    learning_rate: float = 3e-4
+    buffer_size: int = 200_000
+    batch_size: int = 256
+    gamma: float = 0.98
+    tau: float = 0.005
+    learning_starts: int = 1_000
+    train_freq: int = 1
+    gradient_steps: int = 1
+    net_arch: tuple[int, ...] = (256, 256)
+    ent_coef: str = "auto"
+
+    def __post_init__(self) -> None:
+        for name in ("buffer_size", "batch_size", "train_freq"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"sac.{name} must be >= 1, got {getattr(self, name)}")
+        if self.learning_starts < 0:
+            raise ValueError(f"sac.learning_starts must be >= 0, got {self.learning_starts}")
+        if self.gradient_steps == 0 or self.gradient_steps < -1:
+            raise ValueError(f"sac.gradient_steps must be >= 1 or -1, got {self.gradient_steps}")
+        if not 0 < self.gamma <= 1:
+            raise ValueError(f"sac.gamma must be in (0, 1], got {self.gamma}")
+        if not 0 < self.tau <= 1:
+            raise ValueError(f"sac.tau must be in (0, 1], got {self.tau}")
+        if self.learning_rate <= 0:
+            raise ValueError(f"sac.learning_rate must be > 0, got {self.learning_rate}")
+        if not self.net_arch or any(int(h) < 1 for h in self.net_arch):
+            raise ValueError(f"sac.net_arch must be positive layer widths, got {self.net_arch}")
+        ent = self.ent_coef
+        if not ent.startswith("auto"):
+            try:
+                float(ent)
+            except ValueError:
+                raise ValueError(
+                    f"sac.ent_coef must be 'auto', 'auto_<x>' or a number, got {ent!r}"
+                ) from None
+
+
+def make_sac(env: gym.Env, spec: SacSpec, *, seed: int) -> Any:
+    """A fresh SB3 SAC on ``env`` (CPU, one torch thread: the machine is shared)."""
+    import torch
+    from stable_baselines3 import SAC
+
+    torch.set_num_threads(1)
+    ent = spec.ent_coef if spec.ent_coef.startswith("auto") else float(spec.ent_coef)
+    return SAC(
+        "MlpPolicy",
+        env,
+        learning_rate=spec.learning_rate,
+        buffer_size=spec.buffer_size,
+        batch_size=spec.batch_size,
+        gamma=spec.gamma,
+        tau=spec.tau,
+        learning_starts=spec.learning_starts,
+        train_freq=spec.train_freq,
+        gradient_steps=spec.gradient_steps,
+        ent_coef=ent,
+        policy_kwargs={"net_arch": [int(h) for h in spec.net_arch]},
+        seed=seed,
+        device="cpu",
+        verbose=0,
+    )
+
+
+@dataclass
+class TrainingState:
+    """What ``state.json`` in a work folder records: enough to resume and to report."""
+
+    stage: str
+    total_steps: int
+    steps_done: int = 0
+    wall_time_s: float = 0.0
+    curve: list[dict[str, Any]] = field(default_factory=list)
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "stage": self.stage,
+            "total_steps": self.total_steps,
+            "steps_done": self.steps_done,
+            "wall_time_s": self.wall_time_s,
+            "curve": self.curve,
+            "extra": self.extra,
+        }
+
+
+def write_json(path: str | Path, data: Any) -> None:
+    """Write ``data`` as indented JSON, atomically."""
+    from codesign_mb.evaluation.results import atomic_write, to_jsonable
+
+    with atomic_write(path, "w") as fh:
+        json.dump(to_jsonable(data), fh, indent=2)
+        fh.write("\n")
+
+
+def load_state(work_dir: str | Path) -> TrainingState | None:
+    """The state of a previous run in ``work_dir``, or ``None``."""
+    path = Path(work_dir) / "state.json"
+    if not path.is_file():
+        return None
+    data = json.loads(path.read_text())
+    return TrainingState(**data)
+
+
+def _save_model(model: Any, path: Path) -> None:
+    tmp = path.with_name(f".{path.stem}.tmp.zip")
+    model.save(tmp)
+    os.replace(tmp, path)
+
+
+def _save_buffer(model: Any, path: Path) -> None:
+    tmp = path.with_name(f".{path.stem}.tmp.pkl")
+    model.save_replay_buffer(tmp)
+    os.replace(tmp, path)
+
+
+def resume_sac(work_dir: str | Path, env: gym.Env) -> Any | None:
+    """Load the model and replay buffer of ``work_dir`` onto ``env``, or ``None`` if absent."""
+    import torch
+    from stable_baselines3 import SAC
+
+    work_dir = Path(work_dir)
+    model_path = work_dir / "model.zip"
+    if not model_path.is_file():
+        return None
+    torch.set_num_threads(1)
+    model = SAC.load(model_path, env=env, device="cpu")
+    buffer_path = work_dir / "replay_buffer.pkl"
+    if buffer_path.is_file():
+        model.load_replay_buffer(buffer_path)
+    return model
+
+
+def train_sac_in_chunks(
+    model: Any,
+    state: TrainingState,
+    *,
+    work_dir: str | Path,
+    chunk_steps: int,
+    evaluate: Callable[[Any], Mapping[str, Any]] | None = None,
+    callback: Any = None,
+    on_chunk: Callable[[Any, TrainingState], Mapping[str, Any]] | None = None,
+    progress: Progress = no_progress,
+    description: str = "training",
+    save_buffer: bool = True,
+) -> TrainingState:
+    """Run ``model.learn`` chunk by chunk until ``state.total_steps``, checkpointing each chunk.
+
+    After every chunk: ``evaluate(model)`` and ``on_chunk(model, state)`` add entries to a new
+    curve point (with ``steps`` and ``wall_time_s``), then the model, its replay buffer and
+    ``state.json`` are written to ``work_dir``. The step count is SB3's ``num_timesteps``, so a
+    resumed run continues where the last checkpoint left it.
+    """
+    if chunk_steps < 1:
+        raise ValueError(f"chunk_steps must be >= 1, got {chunk_steps}")
+    work_dir = Path(work_dir)
+    work_dir.mkdir(parents=True, exist_ok=True)
+    state.steps_done = int(model.num_timesteps)
+    remaining = max(0, state.total_steps - state.steps_done)
+    n_chunks = -(-remaining // chunk_steps)
+    for _ in progress(range(n_chunks), total=n_chunks, description=description):
+        n = min(chunk_steps, state.total_steps - int(model.num_timesteps))
+        start = time.perf_counter()
+        model.learn(n, reset_num_timesteps=False, callback=callback, progress_bar=False)
+        point: dict[str, Any] = {"steps": int(model.num_timesteps)}
+        if on_chunk is not None:
+            point.update(on_chunk(model, state))
+        if evaluate is not None:
+            point.update(evaluate(model))
+        state.wall_time_s += time.perf_counter() - start
+        state.steps_done = int(model.num_timesteps)
+        point["wall_time_s"] = round(state.wall_time_s, 2)
+        state.curve.append(point)
+        _save_model(model, work_dir / "model.zip")
+        if save_buffer:
+            _save_buffer(model, work_dir / "replay_buffer.pkl")
+        write_json(work_dir / "state.json", state.to_json())
+    return state
+
+
+def write_output(
+    out_dir: str | Path,
+    *,
+    model: Any | None,
+    state: TrainingState,
+    config: Any,
+    command: str | None,
+    seed: int,
+    final: Mapping[str, Any] | None = None,
+    notes: str = "",
+) -> Path:
+    """Write the shipped checkpoint folder: ``model.zip``, ``training.json``, ``curve.json``."""
+    from codesign_mb.config import to_mapping
+    from codesign_mb.evaluation.results import package_version
+
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    if model is not None:
+        _save_model(model, out_dir / "model.zip")
+    meta = {
+        "stage": state.stage,
+        "command": command,
+        "seed": seed,
+        "env_steps": state.steps_done,
+        "wall_time_s": round(state.wall_time_s, 1),
+        "final_evaluation": dict(final or {}),
+        "notes": notes,
+        "package_version": package_version(),
+        "config": to_mapping(config),
+        **state.extra,
+    }
+    write_json(out_dir / "training.json", meta)
+    write_json(out_dir / "curve.json", state.curve)
+    return out_dir
+
+
+@contextlib.contextmanager
+def seeded_torch(seed: int) -> Iterator[None]:
+    """Seed torch inside the block only; the global RNG state is restored afterwards."""
+    import torch
+
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(seed)
+        yield
+
+
+def episode_success(infos: Iterable[Mapping[str, Any]]) -> bool:
+    """An episode succeeds when any step reports ``info["success"]`` (the object was lifted)."""
+    return any(bool(info.get("success", False)) for info in infos)
+
+
+def as_float_array(x: Any) -> np.ndarray:
+    return np.asarray(x, dtype=np.float64)
