@@ -101,10 +101,11 @@ arithmetic = pd.DataFrame(rows)
 arithmetic
 
 # %% [markdown]
-# In the paper cell (MCS 1 for everyone) a camera frame needs about 4.7 ticks of the whole
-# band, so static QoS ($q = 1$) runs out at 7-8 robots even with a perfect scheduler; a
-# co-design policy that asks for $q \approx 0.2$ on average could carry about five times as
-# many.
+# In the paper cell (MCS 1 for everyone, the long 3.2 us guard interval) a camera frame
+# needs about 5.5 ticks of the whole band and its DL exchange takes 0.4 of a tick from the
+# uplink, so static QoS ($q = 1$) runs out at about 6 robots even with a perfect scheduler;
+# a co-design policy that asks for $q \approx 0.2$ on average could carry about five times
+# as many.
 #
 # ## 2. Greedy, convex and the offline optimum
 #

@@ -14,15 +14,25 @@ from codesign_mb.network import BernoulliLink, QosRequest
 LAYOUT = {"gripper_pos": slice(0, 3), "object_pos": slice(3, 6)}
 
 
+PREDICTOR = {"prior_velocity": (0.0, 0.2, 0.0), "accel_std": 0.5}
+
+
 def _predictor() -> DelayCompensatingPredictor:
-    return DelayCompensatingPredictor(
-        LAYOUT, control_period_s=0.04, prior_velocity=(0.0, 0.2, 0.0), accel_std=0.5
+    return DelayCompensatingPredictor(LAYOUT, control_period_s=0.04, **PREDICTOR)
+
+
+def _rule(**options: float) -> CovarianceTriggeredQos:
+    return CovarianceTriggeredQos(
+        {"object_pos": slice(0, 3)},
+        control_period_s=0.04,
+        predictor_options=PREDICTOR,
+        **options,
     )
 
 
 def test_replica_covariance_is_the_robots() -> None:
     """Fed the same (y, zeta) stream one step later, the rule's P equals the robot's P."""
-    rule = CovarianceTriggeredQos(_predictor(), std_threshold_m=0.01, belt_height_m=None)
+    rule = _rule(threshold_m=0.01, low=0.0, latency_steps=1)
     robot = _predictor()
     link = BernoulliLink(seed=3)
     prior = np.array([0.5, -0.4, 0.1])
@@ -52,21 +62,21 @@ def test_replica_covariance_is_the_robots() -> None:
 
 
 def test_lifted_object_gets_the_lift_reliability() -> None:
-    rule = CovarianceTriggeredQos(
-        _predictor(), std_threshold_m=1e-6, lifted_reliability=0.05, belt_height_m=0.1
-    )
+    rule = _rule(threshold_m=1e-6, low=0.05, lift_margin_m=0.03)
     rule.reset()
-    assert rule.request(np.array([0.5, 0.0, 0.1]), 0).reliability == 1.0
-    assert rule.request(np.array([0.5, 0.0, 0.2]), 0).reliability == 0.05
+    assert rule.request(np.array([0.5, 0.0, 0.1]), 0).reliability == 1.0  # the prior
+    assert rule.request(np.array([0.5, 0.0, 0.1]), 0).reliability == 1.0  # on the belt
+    assert rule.request(np.array([0.5, 0.0, 0.2]), 0).reliability == 0.05  # lifted
+    assert rule.request(np.array([0.5, 0.0, 0.1]), 1).reliability == 0.05  # latched
 
 
 @pytest.mark.parametrize(
     ("field", "value"),
-    [("std_threshold_m", -0.01), ("high_reliability", 1.5), ("lift_height_m", 0.0)],
+    [("threshold_m", -0.01), ("lift_margin_m", 0.0), ("latency_steps", 0)],
 )
 def test_bad_rule_settings_name_the_field(field: str, value: float) -> None:
     with pytest.raises(ValueError, match=field):
-        CovarianceTriggeredQos(_predictor(), **{field: value})
+        _rule(**{field: value})
 
 
 def test_tune_threshold_finds_the_success_boundary() -> None:

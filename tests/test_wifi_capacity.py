@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from codesign_mb.adaptation.rules import CovarianceTriggeredQos
 from codesign_mb.wifi import WifiConfig, generate_trace
 from codesign_mb.wifi.capacity import (
     CHANNEL_PRESETS,
@@ -14,7 +15,6 @@ from codesign_mb.wifi.capacity import (
     run_capacity,
 )
 from codesign_mb.wifi.offline import airtime_prices
-from codesign_mb.wifi.qos import CovarianceTriggeredQos
 
 LAYOUT = {"object_pos": slice(0, 3), "object_vel": slice(3, 6)}
 

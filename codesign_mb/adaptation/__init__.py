@@ -1,6 +1,6 @@
 """QoS adaptation policies: static, rule-based, learned (SAC with a primal-dual multiplier)."""
 
 from codesign_mb.adaptation.base import QosPolicy, StaticQos
-from codesign_mb.adaptation.rules import CovarianceTriggeredQos, tune_threshold
+from codesign_mb.adaptation.rules import AgeTriggeredQos, CovarianceTriggeredQos, tune_threshold
 
-__all__ = ["CovarianceTriggeredQos", "QosPolicy", "StaticQos", "tune_threshold"]
+__all__ = ["AgeTriggeredQos", "CovarianceTriggeredQos", "QosPolicy", "StaticQos", "tune_threshold"]

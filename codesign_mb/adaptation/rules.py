@@ -1,13 +1,20 @@
 """Model-based QoS rules: ask for a packet only when the robot's prediction needs one.
 
-No learning: the rule runs, at the edge, a replica of the robot's
-:class:`~codesign_mb.estimation.predictor.DelayCompensatingPredictor`, fed with the same
-``(y_{t-1}, zeta_{t-1})`` stream the robot receives (``eq_q_pol``), so it knows the robot's
-error covariance exactly: for a Kalman filter ``P`` depends on the delivery pattern only, not
-on the data. The packet sent at ``t`` is requested with high reliability when the predicted
-position uncertainty at ``t`` exceeds a threshold, with low reliability otherwise, and with
-the lift reliability once the object is seen lifted off the belt (the grasp is done; the
-paper's learned policy likewise drops to a fixed low value after the lift, ``fig_lat``).
+No learning. Both rules are :class:`~codesign_mb.adaptation.base.QosPolicy` objects: at step
+``t`` they choose ``(q_t, tau_t)`` from what the robot holds, ``(y_{t-1}, zeta_{t-1})``
+(``eq_q_pol``), at the edge.
+
+:class:`AgeTriggeredQos`
+    ``high`` reliability once the held state is ``max_age_steps`` old, ``low`` otherwise.
+:class:`CovarianceTriggeredQos`
+    The edge runs a replica of the robot's delay-compensating predictor
+    (:class:`~codesign_mb.estimation.predictor.DelayCompensatingPredictor`) on exactly what the
+    robot holds, so it knows the robot's error covariance ``P`` (for a Kalman filter ``P``
+    depends on the delivery pattern, not on the data). It asks for ``high`` reliability when
+    the object's position uncertainty ``sqrt(tr P_oo)``, predicted to the step the packet
+    sent now is used at (``t + tau``) without that packet, exceeds ``threshold_m``; ``low``
+    otherwise, and ``low`` once the object is lifted (the paper's learned policy likewise
+    drops to a fixed low value after the lift, ``fig_lat``).
 
 :func:`tune_threshold` finds, by bisection, the largest threshold (the least network) that
 still meets a success constraint.
@@ -16,8 +23,8 @@ still meets a success constraint.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
-from dataclasses import dataclass, field
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -25,105 +32,172 @@ from numpy.typing import NDArray
 
 from codesign_mb.network.qos import QosRequest
 
-__all__ = ["CovarianceTriggeredQos", "ThresholdSearch", "tune_threshold"]
+__all__ = ["AgeTriggeredQos", "CovarianceTriggeredQos", "ThresholdSearch", "tune_threshold"]
 
 
-@dataclass
+@dataclass(frozen=True)
+class AgeTriggeredQos:
+    """QoS rule: ``high`` reliability once ``age >= max_age_steps``, else ``low``."""
+
+    low: float = 0.2
+    high: float = 1.0
+    max_age_steps: int = 3
+    latency_steps: int = 1
+
+    def __post_init__(self) -> None:
+        QosRequest(self.low, self.latency_steps)
+        QosRequest(self.high, self.latency_steps)
+        if (
+            isinstance(self.max_age_steps, bool)
+            or not isinstance(self.max_age_steps, int)
+            or (self.max_age_steps < 1)
+        ):
+            raise ValueError(f"max_age_steps must be an integer >= 1, got {self.max_age_steps!r}")
+
+    def reset(self, *, seed: int | None = None) -> None:
+        return None
+
+    def request(self, observation: NDArray[np.float64], age: int) -> QosRequest:
+        q = self.high if age >= self.max_age_steps else self.low
+        return QosRequest(q, self.latency_steps)
+
+
 class CovarianceTriggeredQos:
-    """High reliability when the predicted object position std exceeds ``std_threshold_m``.
+    """QoS rule: reliable delivery only when the robot's predictor is about to lose the object.
 
     Parameters
     ----------
-    predictor:
-        The replica: a predictor built like the robot's (same model and settings), reset by
-        the rule at every episode.
-    std_threshold_m:
-        Trigger: request ``high_reliability`` when ``sqrt(trace P_oo)`` predicted for the
-        packet's step exceeds this (m).
-    high_reliability, low_reliability:
-        ``q`` when triggered / not triggered.
-    lifted_reliability:
-        ``q`` once the held observation shows the object ``lift_height_m`` above the belt.
+    layout:
+        Name -> slice of the *remote* part of the observation (what the policy is given):
+        ``"object_pos"`` and optionally ``"object_vel"``.
+    control_period_s:
+        Control period (the predictor's ``dt``).
+    threshold_m:
+        Position uncertainty (RMS, m) above which a packet is asked for with ``high``.
+    low, high:
+        Reliabilities requested (``high`` also before anything has arrived).
     latency_steps:
-        ``tau`` of every request (the paper fixes one step).
-    belt_height_m:
-        Height of the object's centre resting on the belt (from the plant's prior).
+        ``tau`` requested with every packet (>= 1 on WiFi).
+    lift_margin_m:
+        Once the held object is this much above where it started, request ``low`` for good
+        (``None``: never).
+    predictor_options:
+        Keyword arguments of
+        :class:`~codesign_mb.estimation.predictor.DelayCompensatingPredictor` (noise levels,
+        prior belt velocity); :meth:`from_env` fills them in from the plant like the robot's.
+
+    Examples
+    --------
+    >>> layout = {"object_pos": slice(0, 3)}
+    >>> rule = CovarianceTriggeredQos(layout, control_period_s=0.04, threshold_m=0.01)
+    >>> rule.reset(seed=0)
+    >>> rule.request(np.zeros(3), 0).reliability  # only the prior: ask for the state
+    1.0
     """
 
-    predictor: Any
-    std_threshold_m: float = 0.01
-    high_reliability: float = 1.0
-    low_reliability: float = 0.0
-    lifted_reliability: float = 0.0
-    latency_steps: int = 1
-    lift_height_m: float = 0.03
-    belt_height_m: float | None = None
-    _calls: int = field(init=False, default=0, repr=False)
+    def __init__(
+        self,
+        layout: Mapping[str, slice],
+        *,
+        control_period_s: float,
+        threshold_m: float = 0.01,
+        low: float = 0.2,
+        high: float = 1.0,
+        latency_steps: int = 1,
+        lift_margin_m: float | None = 0.03,
+        predictor_options: Mapping[str, Any] | None = None,
+    ) -> None:
+        from codesign_mb.estimation.predictor import DelayCompensatingPredictor
 
-    def __post_init__(self) -> None:
-        if not (math.isfinite(self.std_threshold_m) and self.std_threshold_m > 0):
-            raise ValueError(f"std_threshold_m must be > 0, got {self.std_threshold_m}")
-        for name in ("high_reliability", "low_reliability", "lifted_reliability"):
-            q = getattr(self, name)
-            if not (math.isfinite(q) and 0.0 <= q <= 1.0):
-                raise ValueError(f"{name} must be in [0, 1], got {q!r}")
-        QosRequest(self.high_reliability, self.latency_steps)  # validates latency_steps
-        if self.lift_height_m <= 0:
-            raise ValueError(f"lift_height_m must be > 0, got {self.lift_height_m}")
+        QosRequest(low, latency_steps)
+        QosRequest(high, latency_steps)
+        if latency_steps < 1:
+            raise ValueError(f"latency_steps must be >= 1, got {latency_steps}")
+        if not (math.isfinite(threshold_m) and threshold_m > 0):
+            raise ValueError(f"threshold_m must be > 0, got {threshold_m!r}")
+        if lift_margin_m is not None and not lift_margin_m > 0:
+            raise ValueError(f"lift_margin_m must be > 0 or None, got {lift_margin_m!r}")
+        self.low, self.high = float(low), float(high)
+        self.latency_steps = int(latency_steps)
+        self.threshold_m = float(threshold_m)
+        self.lift_margin_m = lift_margin_m
+        self.predictor = DelayCompensatingPredictor(
+            layout, control_period_s=control_period_s, **dict(predictor_options or {})
+        )
+        self._pos = self.predictor._pos
+        self._calls = 0
+        self._start_z: float | None = None
+        self._lifted = False
 
     @classmethod
     def from_env(cls, env: Any, **options: Any) -> CovarianceTriggeredQos:
-        """For a conveyor env: the replica predictor of ``env`` and its belt height."""
+        """For a plant (wrapped or not): remote layout, period and the robot's predictor settings.
+
+        ``options`` are the constructor's keyword arguments (``predictor_options`` entries
+        override what is read from the plant).
+        """
         from codesign_mb.estimation.predictor import DelayCompensatingPredictor
 
-        predictor = DelayCompensatingPredictor.from_env(env, **(options.pop("predictor", {}) or {}))
-        options.setdefault("belt_height_m", float(np.asarray(env.unwrapped.remote_prior())[2]))
-        return cls(predictor, **options)
+        plant = env.unwrapped
+        remote = plant.remote_slice
+        layout = {
+            name: slice(s.start - remote.start, s.stop - remote.start)
+            for name, s in plant.observation_layout.items()
+            if s.start >= remote.start and s.stop <= remote.stop
+        }
+        reference = DelayCompensatingPredictor.from_env(env)
+        predictor = {
+            "prior_velocity": tuple(reference.prior_velocity),
+            "position_noise_std": reference.position_noise_std,
+            "velocity_noise_std": reference.velocity_noise_std,
+            "accel_std": reference.accel_std,
+            **dict(options.pop("predictor_options", None) or {}),
+        }
+        return cls(
+            layout,
+            control_period_s=float(plant.control_period_s),
+            predictor_options=predictor,
+            **options,
+        )
 
     def reset(self, *, seed: int | None = None) -> None:
         self._calls = 0
+        self._start_z = None
+        self._lifted = False
+
+    def position_std_ahead(self, steps: int) -> float:
+        """RMS position uncertainty ``steps`` steps after the latest held state, no new data."""
+        P = self.predictor.covariance
+        A, Q = self.predictor.A, self.predictor.Q
+        for _ in range(steps):
+            P = A @ P @ A.T + Q
+        return float(math.sqrt(max(np.trace(P[:3, :3]), 0.0)))
 
     def request(self, observation: NDArray[np.float64], age: int) -> QosRequest:
-        y = np.asarray(observation, dtype=float)
-        if self._calls == 0:
-            # The packet x_0: the robot holds only the prior (stamped t = -1).
-            P = self.predictor.prior_covariance
+        """``(q_t, tau)`` from ``y_{t-1}`` (the remote part the robot holds) and ``zeta_{t-1}``."""
+        calls, self._calls = self._calls, self._calls + 1
+        held = np.asarray(observation, dtype=float)
+        if calls == 0:  # t = 0: the robot holds the prior, nothing measured yet
+            self._start_z = float(held[self._pos[2]])
+            return QosRequest(self.high, self.latency_steps)
+        wrapped = np.append(held, float(age))
+        if calls == 1:
+            self.predictor.reset(wrapped)
         else:
-            # The replica's clock is the robot's: (y_{t-1}, zeta_{t-1}) is its step t - 1.
-            networked = self._networked(y, age)
-            if self._calls == 1:
-                self.predictor.reset(networked)
-            else:
-                self.predictor.estimate(networked, np.zeros(0))
-            P = self.predictor.covariance
-        self._calls += 1
-        if self._lifted(y):
-            return QosRequest(self.lifted_reliability, self.latency_steps)
-        A, Q = self.predictor.A, self.predictor.Q
-        P_next = A @ P @ A.T + Q  # the robot's prior for the step this packet is sent at
-        std = math.sqrt(max(float(np.trace(P_next[:3, :3])), 0.0))
-        q = self.high_reliability if std > self.std_threshold_m else self.low_reliability
+            self.predictor.estimate(wrapped, np.zeros(0))
+        if (  # the held state is a measurement (not the prior) of a lifted object
+            self.lift_margin_m is not None
+            and self._start_z is not None
+            and age < calls
+            and held[self._pos[2]] > self._start_z + self.lift_margin_m
+        ):
+            self._lifted = True
+        if self._lifted:
+            return QosRequest(self.low, self.latency_steps)
+        # The packet sent now (step t) is used from t + tau on: the uncertainty then without it.
+        std = self.position_std_ahead(1 + self.latency_steps)
+        q = self.high if std > self.threshold_m else self.low
         return QosRequest(q, self.latency_steps)
-
-    def _networked(self, y: NDArray[np.float64], age: int) -> NDArray[np.float64]:
-        """A plant-layout observation holding ``y`` in its remote part, then the age."""
-        layout = self.predictor.layout
-        size = max(s.stop for s in layout.values())
-        obs = np.zeros(size + 1)
-        remote = _remote_slice(layout)
-        obs[remote] = y
-        obs[-1] = age
-        return obs
-
-    def _lifted(self, y: NDArray[np.float64]) -> bool:
-        if self.belt_height_m is None:
-            return False
-        return bool(y[2] - self.belt_height_m >= self.lift_height_m)
-
-
-def _remote_slice(layout: dict[str, slice]) -> slice:
-    names = [n for n in ("object_pos", "object_vel") if n in layout]
-    return slice(layout[names[0]].start, layout[names[-1]].stop)
 
 
 @dataclass(frozen=True)

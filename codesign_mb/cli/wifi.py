@@ -134,10 +134,12 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         """Task success vs number of robots on one channel (Fig. 6), per pipeline x scheduler.
 
-        Writes OUT/fig_wifi.parquet/.csv/.json (one row per trial) and OUT/fig_wifi.png, and
-        prints the curves with each one's capacity (most robots at 95 % success). The plant
-        and the pipelines (controller, estimator, QoS policy) come from --stack or the config
-        file's ``plant`` and ``pipelines`` tables (section ``[capacity]`` or top level).
+        Writes OUT/fig_wifi.parquet, .csv and .json (one row per trial) and OUT/fig_wifi.png,
+        and prints each curve with its capacity (most robots at 95 % success).
+
+        The plant and the pipelines (controller, estimator, QoS policy) come from --stack, or
+        from the config file's plant and pipelines tables (in a capacity table or at the top
+        level), which also takes robots_by_channel (e.g. better = [8, 16, 32]).
         """
         from codesign_mb.config import to_mapping
         from codesign_mb.evaluation.results import write_results

@@ -5,6 +5,7 @@ paper.tex sec. 5 and 6.1; see each module for the equations (``eq_rate``, ``eq_l
 ``eq_lp``).
 """
 
+from codesign_mb.adaptation.rules import AgeTriggeredQos, CovarianceTriggeredQos
 from codesign_mb.wifi.allocators import (
     Allocator,
     ConvexAllocator,
@@ -17,7 +18,6 @@ from codesign_mb.wifi.channel import ChannelConfig
 from codesign_mb.wifi.config import WifiConfig, make_allocator
 from codesign_mb.wifi.offline import AirtimePrices, OfflineResult, airtime_prices, offline_optimum
 from codesign_mb.wifi.phy import MacTiming, PhyConfig, data_rate_mbps, ru_plan
-from codesign_mb.wifi.qos import AgeTriggeredQos, CovarianceTriggeredQos
 from codesign_mb.wifi.sim import Trace, replay
 from codesign_mb.wifi.traffic import TrafficConfig, drop_probability
 

@@ -10,10 +10,11 @@ The pipelines are configuration: a plant (:class:`~codesign_mb.pipeline.plants.P
 and, per pipeline, a controller, an estimator and a QoS policy
 (:class:`~codesign_mb.pipeline.components.ComponentSpec`), so learned pipelines (SAC, MLP
 estimator, learned QoS) plug in by naming their kinds and checkpoints. Besides the kinds of
-:mod:`codesign_mb.pipeline.components`, two model-based QoS rules of :mod:`codesign_mb.wifi.qos`
-are known here: ``"age_triggered"`` (``options``: ``low``, ``high``, ``max_age_steps``,
-``latency_steps``) and ``"covariance_triggered"`` (``options``: ``threshold_m``, ``low``,
-``high``, ``latency_steps``, ``lift_margin_m``, ``predictor_options``).
+:mod:`codesign_mb.pipeline.components`, two model-based QoS rules of
+:mod:`codesign_mb.adaptation.rules` are known here: ``"age_triggered"`` (``options``:
+``low``, ``high``, ``max_age_steps``, ``latency_steps``) and ``"covariance_triggered"``
+(``options``: ``threshold_m``, ``low``, ``high``, ``latency_steps``, ``lift_margin_m``,
+``predictor_options``).
 
 Named stacks (:data:`STACKS`) give the plant and the two pipelines of the figure:
 
@@ -30,9 +31,10 @@ Named stacks (:data:`STACKS`) give the plant and the two pipelines of the figure
 
 Channels (:data:`CHANNEL_PRESETS`): ``"paper"`` is a poor 40 MHz cell (every robot at MCS 1
 with ``q0 = 0.9``, 3.2 us guard interval, Trigger and BlockAck frames at the 6 Mb/s basic
-rate) in which one camera frame of 13,500 bytes takes about 5.7 ms of the whole channel, so
-6-7 robots at ``q = 1`` fill the 40 ms period (the greedy scheduler delivers every frame to 6
-robots, 80 % to 7, 15 % to 8); ``"better"`` uses link adaptation (MCS 0-11 for ``q0 = 0.95``,
+rate) in which one camera frame of 13,500 bytes takes about 5.5 ms of the whole channel and
+its state frame's DL exchange about 0.4 ms more, so about 6 robots at ``q = 1`` fill the 40
+ms period (the greedy scheduler delivers every frame to 6 robots, 80 % to 7, 15 % to 8);
+``"better"`` uses link adaptation (MCS 0-11 for ``q0 = 0.95``,
 0.8 us guard interval) with robots 5-20 m from the AP and 24 Mb/s control frames.
 """
 
@@ -47,10 +49,10 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from codesign_mb.adaptation.rules import AgeTriggeredQos, CovarianceTriggeredQos
 from codesign_mb.wifi.channel import ChannelConfig
 from codesign_mb.wifi.config import SCHEDULERS, WifiConfig
 from codesign_mb.wifi.phy import MacTiming, PhyConfig
-from codesign_mb.wifi.qos import AgeTriggeredQos, CovarianceTriggeredQos
 
 __all__ = [
     "CHANNEL_PRESETS",
@@ -149,8 +151,8 @@ QOS_RULES: dict[str, Callable[..., Any]] = {
 CHANNEL_PRESETS: dict[str, WifiConfig] = {
     # Poor channel: every robot at MCS 1 (QPSK 1/2) with q0 = 0.9, the long 3.2 us guard
     # interval (a factory hall's delay spread), basic-rate control frames at 6 Mb/s: a camera
-    # frame takes ~5.7 ticks of the whole band, so static QoS (q = 1) fills the 40 ms period
-    # with 6-7 robots, as in the paper.
+    # frame takes ~5.5 ticks of the whole band and its DL exchange ~0.4, so static QoS (q = 1)
+    # fills the 40 ms period with about 6 robots, as in the paper.
     "paper": WifiConfig(
         phy=PhyConfig(guard_interval_us=3.2),
         channel=ChannelConfig(fixed_mcs=1, q0=0.9, rician_k_db=math.inf),
@@ -433,7 +435,8 @@ def plot_capacity(results: pd.DataFrame, path: str | Path, *, success_target: fl
                 style, marker = styles.get(str(scheduler), ("-.", "x"))
                 colour = colours[pipeline]
                 cap = int(line["capacity_robots"].iloc[0])
-                reach = f"{cap} robots" if cap else "none"
+                largest = int(line["robots"].max())
+                reach = f">= {cap} robots" if cap == largest else f"{cap} robots" if cap else "none"
                 label = f"{pipeline}, {scheduler} (at {success_target:.0%}: {reach})"
                 x = line["robots"].to_numpy()
                 top.plot(x, line["success_rate"], style, marker=marker, color=colour, label=label)
