@@ -84,6 +84,10 @@ def pipeline(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
             eval_episodes=1,
             demo=ComponentSpec("toy_pick"),
             demo_episodes=2,
+            bc_epochs=2,
+            critic_warmup_steps=20,
+            actor_freeze_steps=50,
+            final_eval_episodes=1,
         ),
         out_dir=out["a"],
         work_dir=work["a"],
@@ -141,8 +145,10 @@ def test_stage_a_writes_checkpoint_and_curve(pipeline: dict[str, Path]) -> None:
     assert meta["command"] == "test a"
     assert meta["demonstrations"]["demo_steps"] == 2 * 40
     curve = json.loads((pipeline["out_a"] / "curve.json").read_text())
-    assert [p["steps"] for p in curve] == [100, 200]
+    assert [p["steps"] for p in curve] == [0, 100, 200]  # 0: after cloning, before SAC
     assert {"success_rate", "mean_return", "wall_time_s"} <= set(curve[-1])
+    assert meta["best"]["steps"] in (0, 100, 200)
+    assert meta["final_evaluation"]["success_rate"] >= 0.0
 
 
 def test_stage_a_resume_continues_the_step_count(pipeline: dict[str, Path], tmp_path) -> None:
@@ -158,11 +164,15 @@ def test_stage_a_resume_continues_the_step_count(pipeline: dict[str, Path], tmp_
         eval_episodes=0,
         demo=None,
         demo_episodes=0,
+        bc_epochs=0,
+        critic_warmup_steps=0,
+        actor_freeze_steps=0,
+        final_eval_episodes=1,
     )
     result = train_stage_a(config, out_dir=tmp_path / "out", work_dir=work, resume=True)
     assert result["env_steps"] == 300
     state = json.loads((work / "state.json").read_text())
-    assert [p["steps"] for p in state["curve"]] == [100, 200, 300]
+    assert [p["steps"] for p in state["curve"]] == [0, 100, 200, 300]
 
 
 def test_sac_controller_save_load_identical_actions(tmp_path) -> None:

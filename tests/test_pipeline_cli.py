@@ -16,7 +16,11 @@ TOY_A = """
 total_steps = 200
 chunk_steps = 100
 eval_episodes = 1
+final_eval_episodes = 1
 demo_episodes = 1
+bc_epochs = 2
+critic_warmup_steps = 20
+actor_freeze_steps = 0
 
 [a.plant]
 name = "toy"
@@ -78,7 +82,7 @@ def test_train_a_writes_checkpoint_then_resumes(runner: CliRunner, tmp_path: Pat
     assert result.exit_code == 0, result.output
     assert json.loads(result.stdout)["env_steps"] == 300
     curve = json.loads((out / "curve.json").read_text())
-    assert [p["steps"] for p in curve] == [100, 200, 300]
+    assert [p["steps"] for p in curve] == [0, 100, 200, 300]
 
 
 def test_train_rejects_bad_input(runner: CliRunner, tmp_path: Path) -> None:

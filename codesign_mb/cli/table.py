@@ -37,7 +37,14 @@ def register(app: typer.Typer) -> None:
     def table(
         ctx: typer.Context,
         pipeline: Annotated[
-            str, typer.Option("--pipeline", help="Which rows: model-free (the paper's).")
+            str,
+            typer.Option(
+                "--pipeline",
+                help=(
+                    "Which rows: model-free (the paper's Table I), model-based (MPC, "
+                    "predictor, rule QoS) or all (both, and the mixed pairs)."
+                ),
+            ),
         ] = "model-free",
         config: ConfigOption = None,
         trials: Annotated[int, typer.Option("--trials", "-n", help="Episodes per row.")] = 100,

@@ -65,6 +65,8 @@ ESTIMATOR_KINDS: dict[str, tuple[str, bool, bool, str]] = {
 }
 QOS_KINDS: dict[str, tuple[str, bool, bool, str]] = {
     "static": ("codesign_mb.adaptation.base:StaticQos", False, False, ""),
+    "rule": ("codesign_mb.adaptation.rules:CovarianceTriggeredQos.from_env", True, False, ""),
+    "age_rule": ("codesign_mb.adaptation.rules:AgeTriggeredQos", False, False, ""),
     "learned": (
         "codesign_mb.adaptation.learned:LearnedQosPolicy.from_env",
         True,

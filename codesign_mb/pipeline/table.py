@@ -29,6 +29,8 @@ __all__ = [
     "PIPELINES",
     "TableConfig",
     "TableRow",
+    "all_rows",
+    "model_based_rows",
     "model_free_rows",
     "plot_timeline",
     "qos_timeline",
@@ -86,7 +88,42 @@ def model_free_rows() -> tuple[TableRow, ...]:
     )
 
 
-PIPELINES: dict[str, Callable[[], tuple[TableRow, ...]]] = {"model-free": model_free_rows}
+MPC_RULE_THRESHOLD_M = 0.08
+"""Trigger of the model-based co-design rule: tuned by bisection for >= 98 % success at
+0.2 m/s (`tune_threshold`; see the note in README.md)."""
+
+
+def model_based_rows() -> tuple[TableRow, ...]:
+    """The model-based counterparts of Table I: MPC, the predictor, the covariance rule."""
+    mpc = ComponentSpec("mpc")
+    predictor = ComponentSpec("predictor")
+    static = ComponentSpec("static", options={"reliability": 1.0, "latency_steps": 1})
+    rule = ComponentSpec("rule", options={"threshold_m": MPC_RULE_THRESHOLD_M, "low": 0.0})
+    return (
+        TableRow("MPC + predictor, static QoS", mpc, predictor, static),
+        TableRow("MPC, no estimator, rule QoS", mpc, ComponentSpec("plain"), rule),
+        TableRow("MPC + predictor, rule QoS (co-design)", mpc, predictor, rule),
+    )
+
+
+def all_rows() -> tuple[TableRow, ...]:
+    """Both pipelines and the mixed pairs (SAC + predictor, MPC + MLP estimator)."""
+    sac = ComponentSpec("sac", "checkpoints/stage_a/model.zip")
+    mlp = ComponentSpec("mlp", "checkpoints/stage_d/mlp.pt")
+    static = ComponentSpec("static", options={"reliability": 1.0, "latency_steps": 1})
+    return (
+        *model_free_rows(),
+        *model_based_rows(),
+        TableRow("SAC + predictor, static QoS", sac, ComponentSpec("predictor"), static),
+        TableRow("MPC + MLP estimator, static QoS", ComponentSpec("mpc"), mlp, static),
+    )
+
+
+PIPELINES: dict[str, Callable[[], tuple[TableRow, ...]]] = {
+    "model-free": model_free_rows,
+    "model-based": model_based_rows,
+    "all": all_rows,
+}
 """Pipeline name -> its default rows."""
 
 

@@ -163,7 +163,8 @@ def load_state(work_dir: str | Path) -> TrainingState | None:
 
 def _save_model(model: Any, path: Path) -> None:
     tmp = path.with_name(f".{path.stem}.tmp.zip")
-    model.save(tmp)
+    # The actor learning-rate hook is a bound method: pickled, it drags the whole model along.
+    model.save(tmp, exclude=["_update_learning_rate"])
     os.replace(tmp, path)
 
 
@@ -202,6 +203,7 @@ def train_sac_in_chunks(
     progress: Progress = no_progress,
     description: str = "training",
     save_buffer: bool = True,
+    keep_best: str | None = None,
 ) -> TrainingState:
     """Run ``model.learn`` chunk by chunk until ``state.total_steps``, checkpointing each chunk.
 
@@ -209,6 +211,10 @@ def train_sac_in_chunks(
     curve point (with ``steps`` and ``wall_time_s``), then the model, its replay buffer and
     ``state.json`` are written to ``work_dir``. The step count is SB3's ``num_timesteps``, so a
     resumed run continues where the last checkpoint left it.
+
+    With ``keep_best`` (a key of the evaluation, e.g. ``"success_rate"``), the model of the
+    best evaluation so far (ties: the later) is also kept as ``best_model.zip`` and recorded
+    in ``state.extra["best"]`` (SB3's ``EvalCallback`` practice).
     """
     if chunk_steps < 1:
         raise ValueError(f"chunk_steps must be >= 1, got {chunk_steps}")
@@ -231,6 +237,11 @@ def train_sac_in_chunks(
         point["wall_time_s"] = round(state.wall_time_s, 2)
         state.curve.append(point)
         _save_model(model, work_dir / "model.zip")
+        if keep_best is not None and keep_best in point:
+            best = state.extra.get("best")
+            if best is None or point[keep_best] >= best[keep_best]:
+                state.extra["best"] = {"steps": point["steps"], keep_best: point[keep_best]}
+                _save_model(model, work_dir / "best_model.zip")
         if save_buffer:
             _save_buffer(model, work_dir / "replay_buffer.pkl")
         write_json(work_dir / "state.json", state.to_json())
