@@ -13,7 +13,10 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, TypeVar
 
-__all__ = ["from_mapping", "load_config_file", "to_mapping"]
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+__all__ = ["as_matrix", "from_mapping", "load_config_file", "to_mapping"]
 
 T = TypeVar("T")
 
@@ -85,3 +88,25 @@ def load_config_file(path: str | Path) -> dict[str, Any]:
             raise ValueError(f"config file {str(path)!r} must hold a mapping at the top level")
         return data
     raise ValueError(f"config file must be .toml, .yaml or .yml, got {str(path)!r}")
+
+
+def as_matrix(
+    name: str, value: ArrayLike, shape: tuple[int, int] | None = None
+) -> NDArray[np.float64]:
+    """``value`` as a finite 2-D float array (scalars become 1 x 1), its shape checked.
+
+    Errors name the field: ``"W must have shape (2, 2), got (3, 3)"``.
+    """
+    try:
+        out = np.array(value, dtype=float)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{name} must be a numeric matrix, got {value!r}") from exc
+    if out.ndim == 0:
+        out = out.reshape(1, 1)
+    if out.ndim != 2:
+        raise ValueError(f"{name} must be a 2-D matrix, got an array of shape {out.shape}")
+    if shape is not None and out.shape != shape:
+        raise ValueError(f"{name} must have shape {shape}, got {out.shape}")
+    if not np.isfinite(out).all():
+        raise ValueError(f"{name} must be finite, got {out.tolist()}")
+    return out

@@ -37,6 +37,7 @@ import numpy as np
 import scipy.linalg
 from numpy.typing import ArrayLike, NDArray
 
+from codesign_mb.config import as_matrix
 from codesign_mb.estimation.base import split_networked_observation
 from codesign_mb.network.link import PRIOR_TIMESTAMP
 from codesign_mb.network.wrapper import LinkObservationWrapper
@@ -59,20 +60,7 @@ FloatArray = NDArray[np.float64]
 
 
 def _matrix(name: str, value: ArrayLike, shape: tuple[int, int] | None = None) -> FloatArray:
-    """``value`` as a finite 2-D float array (scalars become 1 x 1), shape checked."""
-    try:
-        out = np.array(value, dtype=float)
-    except (TypeError, ValueError) as exc:
-        raise ValueError(f"{name} must be a numeric matrix, got {value!r}") from exc
-    if out.ndim == 0:
-        out = out.reshape(1, 1)
-    if out.ndim != 2:
-        raise ValueError(f"{name} must be a 2-D matrix, got an array of shape {out.shape}")
-    if shape is not None and out.shape != shape:
-        raise ValueError(f"{name} must have shape {shape}, got {out.shape}")
-    if not np.isfinite(out).all():
-        raise ValueError(f"{name} must be finite")
-    return out
+    return as_matrix(name, value, shape)
 
 
 def _vector(name: str, value: ArrayLike, size: int) -> FloatArray:

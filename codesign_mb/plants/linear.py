@@ -40,6 +40,8 @@ import numpy as np
 import scipy.linalg
 from numpy.typing import ArrayLike, NDArray
 
+from codesign_mb.config import as_matrix
+
 __all__ = [
     "CONTROL_PERIOD_S",
     "LINEAR_PLANTS",
@@ -59,18 +61,7 @@ FloatArray = NDArray[np.float64]
 
 def _matrix(name: str, value: ArrayLike, shape: tuple[int, int] | None = None) -> FloatArray:
     """``value`` as a finite, read-only 2-D float array (scalars become 1 x 1)."""
-    try:
-        out = np.array(value, dtype=float)
-    except (TypeError, ValueError) as exc:
-        raise ValueError(f"{name} must be a numeric matrix, got {value!r}") from exc
-    if out.ndim == 0:
-        out = out.reshape(1, 1)
-    if out.ndim != 2:
-        raise ValueError(f"{name} must be a 2-D matrix, got an array of shape {out.shape}")
-    if shape is not None and out.shape != shape:
-        raise ValueError(f"{name} must have shape {shape}, got {out.shape}")
-    if not np.isfinite(out).all():
-        raise ValueError(f"{name} must be finite, got {out.tolist()}")
+    out = as_matrix(name, value, shape)
     out.setflags(write=False)
     return out
 
