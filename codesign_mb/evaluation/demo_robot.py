@@ -164,13 +164,13 @@ def robot_demo_command(
         return
     rows = [
         {
-            "estimator": r["estimator"],
+            "est.": r["estimator"],
             "q": r["reliability"],
             "success": f"{r['success_rate']:.2f}",
             "95% CI": f"[{r['success_ci_low']:.2f}, {r['success_ci_high']:.2f}]",
-            "mean age": f"{r['mean_age']:.2f}",
-            "delivered": f"{r['delivered_fraction']:.2f}",
-            "est. error cm": f"{r['estimation_error_cm']:.2f}",
+            "age": f"{r['mean_age']:.1f}",
+            "deliv.": f"{r['delivered_fraction']:.2f}",
+            "err cm": f"{r['estimation_error_cm']:.1f}",
             "MPC ms": f"{r['mpc_solve_ms_median']:.2f}",
         }
         for r in result["rows"]

@@ -220,27 +220,36 @@ def estimator_mse(
 
     Runs ``reset``/``estimate`` along each episode exactly as a rollout does and returns the
     mean squared error of the remote estimate over all steps (``mse``, summed over the remote
-    entries), of the object position alone (``mse_position``, m^2, when ``position`` — a slice
-    of the plant observation — is given) and its root (``rmse_position_m``).
+    entries). With ``position`` (the ``object_pos`` slice of the plant observation) also the
+    object position's ``mse_position`` (m^2) and RMSE, overall and split into the steps where
+    the object rides the belt and where it is off it (more than 1 cm above its first height:
+    grasped and lifted), since the two phases have different dynamics.
     """
-    sq, sq_pos, n = 0.0, 0.0, 0
+    sq, n = 0.0, 0
+    sq_pos = np.zeros(2)
+    n_pos = np.zeros(2)
     for nets, prevs, truth in zip(data.networked, data.prev_actions, data.truth, strict=True):
         nets64 = np.asarray(nets, dtype=np.float64)
         estimates = [estimator.reset(nets64[0])]
         for t in range(1, len(nets64)):
             estimates.append(estimator.estimate(nets64[t], np.asarray(prevs[t], dtype=np.float64)))
         est = np.asarray(estimates)
-        err = est[:, remote] - truth
-        sq += float(np.sum(err**2))
-        if position is not None:
-            sq_pos += float(
-                np.sum((est[:, position] - _position_truth(truth, remote, position)) ** 2)
-            )
+        sq += float(np.sum((est[:, remote] - truth) ** 2))
         n += len(nets64)
+        if position is not None:
+            true_pos = _position_truth(truth, remote, position)
+            err = np.sum((est[:, position] - true_pos) ** 2, axis=1)
+            off = true_pos[:, 2] > true_pos[0, 2] + 0.01
+            for i, mask in enumerate((~off, off)):
+                sq_pos[i] += float(err[mask].sum())
+                n_pos[i] += int(mask.sum())
     out = {"mse": sq / max(n, 1)}
     if position is not None:
-        out["mse_position"] = sq_pos / max(n, 1)
+        out["mse_position"] = float(sq_pos.sum() / max(n, 1))
         out["rmse_position_m"] = float(np.sqrt(out["mse_position"]))
+        for i, phase in enumerate(("on_belt", "off_belt")):
+            if n_pos[i]:
+                out[f"rmse_position_{phase}_m"] = float(np.sqrt(sq_pos[i] / n_pos[i]))
     return out
 
 

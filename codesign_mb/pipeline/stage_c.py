@@ -439,7 +439,9 @@ class StageCConfig:
     feature_options: dict[str, Any] = field(default_factory=dict)
     env: QosEnvConfig = field(default_factory=QosEnvConfig)
     dual: DualAscent = field(default_factory=DualAscent)
-    sac: SacSpec = field(default_factory=lambda: SacSpec(gamma=0.99, buffer_size=100_000))
+    sac: SacSpec = field(
+        default_factory=lambda: SacSpec(gamma=0.99, buffer_size=100_000, net_arch=(64, 64))
+    )
     total_steps: int = 40_000
     chunk_steps: int = 5_000
     eval_episodes: int = 20
