@@ -73,6 +73,22 @@ class ProportionalController:
         return {"controller_calls": float(self.calls)}
 
 
+class CrashOnceController(ProportionalController):
+    """Kills its worker process the first time it runs (a marker file remembers)."""
+
+    def __init__(self, marker: str) -> None:
+        self.marker = marker
+
+    def act(self, observation):
+        import os
+
+        if not os.path.exists(self.marker):
+            with open(self.marker, "w") as fh:
+                fh.write("crashed")
+            os._exit(1)
+        return super().act(observation)
+
+
 def _table(workers: int, seed: int = 3, trials: int = 6) -> pd.DataFrame:
     return evaluate(
         ProportionalController(),
@@ -283,3 +299,15 @@ def test_demo_runs_the_robot_by_default(tmp_path) -> None:
     assert data["rows"][0]["delivered_fraction"] == 1.0
     bad = _cli(["demo", "--episodes", "0"])
     assert bad.exit_code == 2 and bad.stderr.startswith("error: episodes ")
+
+
+def test_a_dead_worker_is_replaced_and_the_table_unchanged(tmp_path) -> None:
+    qos = StaticQos(reliability=0.6, latency_steps=1)
+    marker = str(tmp_path / "crashed")
+    with pytest.warns(RuntimeWarning, match="worker process died"):
+        crashed = evaluate(
+            CrashOnceController(marker), PassThroughEstimator, qos, make_catch_env, 6, 3, workers=2
+        )
+    reference = _table(workers=1)
+    keep = [c for c in reference.columns if c not in TIMING_COLUMNS]
+    pd.testing.assert_frame_equal(crashed[keep], reference[keep])

@@ -30,8 +30,10 @@ import os
 import pickle
 import statistics
 import time
+import warnings
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
 from multiprocessing import get_context
 from typing import Any
@@ -335,6 +337,7 @@ def episode_row(steps: pd.DataFrame) -> dict[str, Any]:
 _RUNNERS: dict[int, _Runner] = {}
 _PAYLOADS: list[bytes] = []
 _CACHE = 2  # runners kept per process (each holds an env and a built controller)
+_MAX_POOL_RESTARTS = 2
 
 
 def _runner_for(job: int) -> _Runner:
@@ -394,19 +397,35 @@ def run_jobs(
             assert runner is not None
             yield j, runner.run(i, s)
         return
-    with ProcessPoolExecutor(
-        max_workers=workers,
-        mp_context=get_context("spawn"),
-        initializer=_init_worker,
-        initargs=(payloads,),
-    ) as pool:
-        futures = [pool.submit(_run_in_worker, j, i, s) for j, i, s in tasks]
-        try:
-            for future in as_completed(futures):
-                yield future.result()
-        finally:
-            for future in futures:
-                future.cancel()
+    pending = list(tasks)
+    restarts = 0
+    while pending:
+        with ProcessPoolExecutor(
+            max_workers=workers,
+            mp_context=get_context("spawn"),
+            initializer=_init_worker,
+            initargs=(payloads,),
+        ) as pool:
+            futures = {pool.submit(_run_in_worker, *task): task for task in pending}
+            try:
+                for future in as_completed(futures):
+                    result = future.result()
+                    pending.remove(futures[future])
+                    yield result
+            except BrokenProcessPool:
+                # A worker died (killed from outside, out of memory): episodes are pure
+                # functions of their seed, so the missing ones are rerun in a fresh pool.
+                restarts += 1
+                if restarts > _MAX_POOL_RESTARTS:
+                    raise
+                warnings.warn(
+                    f"a worker process died; rerunning {len(pending)} episodes in a new pool",
+                    RuntimeWarning,
+                    stacklevel=2,
+                )
+            finally:
+                for future in futures:
+                    future.cancel()
 
 
 def iter_episodes(
