@@ -31,6 +31,7 @@ from codesign_mb.pipeline.stage_b import (
     EpisodeData,
     EstimatorTraining,
     RandomQos,
+    _cached,
     collect_episodes,
     estimator_mse,
     fit_estimator,
@@ -103,14 +104,6 @@ class StageDConfig:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         if self.mix_episodes < 0:
             raise ValueError(f"mix_episodes must be >= 0, got {self.mix_episodes}")
-
-
-def _cached(path: Path, make: Any) -> EpisodeData:
-    if path.is_file():
-        return EpisodeData.load(path)
-    data = make()
-    data.save(path)
-    return data
 
 
 def train_stage_d(
