@@ -139,7 +139,7 @@ class ConveyorConfig:
     terminate_on_success: bool = False
     grasp_force_n: float = 20.0
     finger_speed_mps: float = 0.1
-    osc_model_period: int = 5
+    osc_model_period: int = 10
     render_width: int = 480
     render_height: int = 360
     render_camera: str = "overview"
@@ -341,6 +341,11 @@ class ConveyorPickPlace(gym.Env):
         self.workspace_radius = 0.72
         self.sim.osc.set_workspace(self.workspace_low, self.workspace_high, self.workspace_radius)
         self._brake_accel = 0.5 * self.sim.osc.gains.max_accel_mps2
+        # Farther than this from every face, the braking cap exceeds any commanded speed
+        # (the norm of a velocity whose components are at the limit).
+        T, a = self.control_period_s, self._brake_accel
+        v = math.sqrt(3.0) * config.max_gripper_speed_mps
+        self._brake_distance = 0.5 * a * ((v / a + T) ** 2 - T * T)
         self._renderer = None
         self._t = 0
         self._speeds = np.full(config.horizon + 1, config.belt_speed_mps)
@@ -439,18 +444,26 @@ class ConveyorPickPlace(gym.Env):
         # does nothing.
         T, a = self.control_period_s, self._brake_accel
         x = self.sim.osc.position_reference
+        limit = self.config.max_gripper_speed_mps
+        margin = self._brake_distance
+        radius = math.hypot(x[0], x[1])
+        if (
+            (x - self.workspace_low).min() > margin
+            and (self.workspace_high - x).min() > margin
+            and self.workspace_radius - radius > margin
+        ):  # the usual case: far from every face, only the speed limit applies
+            np.clip(velocity, -limit, limit, out=velocity)
+            return
 
         def cap(distance: NDArray[np.float64] | float) -> NDArray[np.float64] | float:
             return a * (np.sqrt(T * T + 2.0 * np.maximum(distance, 0.0) / a) - T)
 
         np.clip(velocity, -cap(x - self.workspace_low), cap(self.workspace_high - x), out=velocity)
-        radius = math.hypot(x[0], x[1])
         if radius > 0:
             outward = (velocity[0] * x[0] + velocity[1] * x[1]) / radius
             allowed = float(cap(self.workspace_radius - radius))
             if outward > allowed:
                 velocity[:2] -= (outward - allowed) * x[:2] / radius
-        limit = self.config.max_gripper_speed_mps
         np.clip(velocity, -limit, limit, out=velocity)
 
     def _observation(self) -> NDArray[np.float64]:
@@ -472,7 +485,7 @@ class ConveyorPickPlace(gym.Env):
     def _evaluate(self) -> tuple[float, bool, bool, bool, float]:
         gripper = self.sim.tcp_position()
         obj = self.sim.object_position()
-        distance = float(np.linalg.norm(obj - gripper))
+        distance = math.dist(obj, gripper)
         left, right = self.sim.finger_contacts()
         grasped = left and right
         rise = float(obj[2] - self.rest_height)

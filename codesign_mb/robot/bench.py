@@ -65,7 +65,7 @@ def bench_env(*, repeats: int = 5, seed: int = 0, episodes: int = 1) -> dict[str
     sim = env.sim
     m, d = sim.model, sim.data
     recorded: list[np.ndarray] = []
-    bare_step = sim._mj_step
+    bare_step = sim._mj_step2  # the second half of each physics step, after the torques
 
     def recording_step() -> None:
         recorded.append(d.ctrl.copy())
@@ -73,14 +73,14 @@ def bench_env(*, repeats: int = 5, seed: int = 0, episodes: int = 1) -> dict[str
 
     obs, _ = env.reset(seed=seed)
     policy.reset(seed=seed)
-    sim._mj_step = recording_step
+    sim._mj_step2 = recording_step
     try:
         done = False
         while not done:
             obs, _, terminated, truncated, _ = env.step(policy.act(obs))
             done = terminated or truncated
     finally:
-        sim._mj_step = bare_step
+        sim._mj_step2 = bare_step
     controls = np.array(recorded)
     env.reset(seed=seed)
     ctrl = d.ctrl

@@ -17,7 +17,7 @@ import pinocchio as pin
 from numpy.typing import ArrayLike, NDArray
 
 from codesign_mb.robot.model import GRIPPER_DOWN, N_ARM, PandaModel
-from codesign_mb.robot.osc import OperationalSpaceController, OscGains
+from codesign_mb.robot.osc import OperationalSpaceController, OscGains, SensedTcp
 from codesign_mb.robot.scene import BELT_SURFACE_Z, BELT_X, STRIPE_PERIOD, Scene, build_scene
 
 __all__ = ["HOME_TCP_POSITION", "ConveyorSimulator", "home_configuration"]
@@ -64,7 +64,7 @@ class ConveyorSimulator:
         n_substeps: int = 20,
         timestep_s: float = 0.002,
         gains: OscGains | None = None,
-        model_period: int = 5,
+        model_period: int = 10,
         grasp_force_n: float = 20.0,
         finger_speed_mps: float = 0.1,
     ) -> None:
@@ -86,7 +86,16 @@ class ConveyorSimulator:
         self._q = self.data.qpos[sc.arm_qpos]
         self._v = self.data.qvel[sc.arm_qvel]
         self._arm_ctrl = self.data.ctrl[sc.arm_actuators]
-        self._mj_step = partial(mujoco.mj_step, self.model, self.data)
+        # The inner loop splits each physics step around the torque computation: mj_step1
+        # (kinematics, bias forces of the current state), then mj_step2 (constraints,
+        # integration); identical to mj_step (tests/test_robot.py).
+        self._mj_step2 = partial(mujoco.mj_step2, self.model, self.data)
+        self._sensed = SensedTcp(
+            forward=partial(mujoco.mj_step1, self.model, self.data),
+            rotation=self.data.site_xmat[sc.tcp_site],
+            position=self.data.site_xpos[sc.tcp_site],
+            bias=self.data.qfrc_bias[sc.arm_qvel],
+        )
         self._left_geoms = frozenset(sc.left_finger_geoms)
         self._right_geoms = frozenset(sc.right_finger_geoms)
         self._tcp_pos = np.zeros(3)
@@ -150,7 +159,15 @@ class ConveyorSimulator:
         self._closed = bool(close)
         d.ctrl[sc.finger_actuators] = -self.finger_speed if close else self.finger_speed
         # Torque limits: the arm actuators' ctrlrange (the URDF effort limits) clamps.
-        self.osc.run(self._q, self._v, self._arm_ctrl, self._mj_step, self.n_substeps, clip=False)
+        self.osc.run(
+            self._q,
+            self._v,
+            self._arm_ctrl,
+            self._mj_step2,
+            self.n_substeps,
+            clip=False,
+            sensed=self._sensed,
+        )
         if d.warning[mujoco.mjtWarning.mjWARN_BADQACC].number:
             raise RuntimeError(
                 "the simulation diverged (MuJoCo reported a bad acceleration); reset the env"
