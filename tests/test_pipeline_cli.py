@@ -113,6 +113,7 @@ def test_table_writes_tab_p_and_fig_lat(runner: CliRunner, tmp_path: Path) -> No
     assert 0.0 <= rows[0]["success_ci_low"] <= rows[0]["success_rate"] <= 1.0
     table = pd.read_csv(out / "tab_p.csv")
     assert len(table) == 2
+    assert (table["plant"] == "toy").all() and (table["status"] == "ok").all()  # [table.plant]
     episodes = pd.read_csv(out / "tab_p_episodes.csv")
     assert len(episodes) == 6
     assert (out / "fig_lat.png").stat().st_size > 1000

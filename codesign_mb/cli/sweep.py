@@ -37,8 +37,24 @@ _HELP = (
     "only the missing ones; the table goes to OUT/NAME.parquet (+ .csv, .json). A config file "
     "holds the grid at top level or under \\[sweep] (keys: scenario, name, seed, n_seeds, "
     "belt_speeds_mps, robot_counts, pipelines) and the scenario's settings under "
-    "\\[sweep.params] (linear: reliability, latency_steps, capacity_robots, horizon_steps, ...)."
+    "\\[sweep.params] (linear: reliability, latency_steps, capacity_robots, horizon_steps, ...; "
+    "conveyor: episodes, horizon, belt_profile, link, capacity_robots, channel, scheduler, "
+    "plant_options), or with --param KEY=VALUE."
 )
+
+
+def _parse_param(item: str) -> tuple[str, Any]:
+    """A ``--param`` assignment: ``key=value`` with a JSON value (else a string)."""
+    import json
+
+    key, sep, text = item.partition("=")
+    if not sep or not key.strip():
+        raise ValueError(f"--param expects key=value, got {item!r}")
+    try:
+        value = json.loads(text.strip())
+    except json.JSONDecodeError:
+        value = text.strip()
+    return f"params.{key.strip()}", value
 
 
 def register(app: typer.Typer) -> None:
@@ -107,6 +123,14 @@ def register(app: typer.Typer) -> None:
                 help="Parallel trials (pool size / local Ray CPUs). \\[default: all CPUs]"
             ),
         ] = None,
+        params: Annotated[
+            list[str] | None,
+            typer.Option(
+                "--param",
+                help="Scenario setting key=value (JSON value; repeat the option), on top of "
+                "\\[sweep.params]: --param horizon=40 --param link=wifi",
+            ),
+        ] = None,
         fresh: Annotated[
             bool,
             typer.Option("--fresh", help="Recompute every trial instead of resuming."),
@@ -116,24 +140,21 @@ def register(app: typer.Typer) -> None:
         """Run a sweep: pipelines x belt speeds x robot counts x seeds, one row per trial."""
         from codesign_mb.evaluation.sweep import SweepConfig, run_sweep
 
-        cfg = load_config(
-            SweepConfig,
-            config,
-            explicit(
-                ctx,
-                {
-                    "scenario": scenario,
-                    "pipelines": pipelines,
-                    "belt_speeds": belt_speeds,
-                    "robot_counts": robot_counts,
-                    "n_seeds": n_seeds,
-                    "seed": seed,
-                    "name": name,
-                },
-                rename={"belt_speeds": "belt_speeds_mps"},
-            ),
-            section="sweep",
+        overrides = explicit(
+            ctx,
+            {
+                "scenario": scenario,
+                "pipelines": pipelines,
+                "belt_speeds": belt_speeds,
+                "robot_counts": robot_counts,
+                "n_seeds": n_seeds,
+                "seed": seed,
+                "name": name,
+            },
+            rename={"belt_speeds": "belt_speeds_mps"},
         )
+        overrides.update(_parse_param(p) for p in params or [])
+        cfg = load_config(SweepConfig, config, overrides, section="sweep")
         try:
             result = run_sweep(
                 cfg,

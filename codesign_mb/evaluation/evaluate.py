@@ -302,7 +302,7 @@ class _Runner:
         )
         row: dict[str, Any] = {"episode": episode, "seed": seed}
         row.update(episode_row(steps))
-        for obj in (self.controller, self.estimator):
+        for obj in (self.controller, self.estimator, self.env.qos_policy):
             metrics = getattr(obj, "episode_metrics", None)
             if callable(metrics):
                 row.update(metrics())
@@ -496,10 +496,11 @@ def evaluate(
         ``steps``, ``return``, ``mean_requested_reliability`` (the paper's average PDR),
         ``mean_latency_steps``, ``mean_qos_cost``, ``delivered_fraction``, ``mean_age``,
         ``max_age``, ``mean_estimation_error``, ``max_estimation_error``, the plant's
-        ``lifted`` and ``min_gripper_object_distance`` when it reports them, the components'
-        ``episode_metrics()`` (for the MPC: ``mpc_solves``, ``mpc_failures``,
-        ``mpc_solve_ms_median``, ``mpc_solve_ms_p99``, ``mpc_solve_ms_max`` (wall clock),
-        ``mpc_solve_cpu_ms_median``, ``mpc_solve_cpu_ms_p99`` (CPU)), ``wall_time_s``.
+        ``lifted`` and ``min_gripper_object_distance`` when it reports them, the
+        ``episode_metrics()`` of the controller, estimator and QoS policy (for the MPC:
+        ``mpc_solves``, ``mpc_failures``, ``mpc_solve_ms_median``, ``mpc_solve_ms_p99``,
+        ``mpc_solve_ms_max`` (wall clock), ``mpc_solve_cpu_ms_median``,
+        ``mpc_solve_cpu_ms_p99`` (CPU)), ``wall_time_s``.
     """
     rows = []
     for row in iter_episodes(
