@@ -50,5 +50,17 @@ class SacController:
 
     def act(self, observation: NDArray[np.float64]) -> NDArray[np.float64]:
         obs = np.asarray(observation, dtype=np.float32).reshape(self._obs_shape)
-        action, _ = self.model.predict(obs, deterministic=self.deterministic)
+        policy = getattr(self.model, "policy", None)
+        if policy is None or not hasattr(policy, "actor"):
+            action, _ = self.model.predict(obs, deterministic=self.deterministic)
+            return np.asarray(action, dtype=np.float64)
+        # SB3's SAC predict() minus its per-call bookkeeping (training-mode switch, obs
+        # preprocessing checks): the same actor, squashing and rescaling.
+        import torch
+
+        if policy.training:
+            policy.set_training_mode(False)
+        with torch.no_grad():
+            squashed = policy.actor(torch.as_tensor(obs)[None], deterministic=self.deterministic)
+        action = policy.unscale_action(squashed.numpy()[0])
         return np.asarray(action, dtype=np.float64)
