@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol, runtime_checkable
@@ -28,6 +29,7 @@ __all__ = [
     "QOS_FEATURES",
     "ElapsedTimeFeature",
     "LearnedQosPolicy",
+    "PredictorStdFeature",
     "QosFeatures",
     "QosInterface",
     "make_features",
@@ -81,8 +83,112 @@ class ElapsedTimeFeature:
         return np.array([t / self.horizon])
 
 
+class PredictorStdFeature:
+    """What the model-based stack knows, at the edge: the robot's predictor uncertainty.
+
+    A replica of the robot's
+    :class:`~codesign_mb.estimation.predictor.DelayCompensatingPredictor`
+    (:class:`~codesign_mb.adaptation.rules.PredictorReplica`, the one the covariance rule
+    uses) is fed the stream the QoS policy sees, ``(y_{t-1}, zeta_{t-1})``, so it holds the
+    robot's error covariance ``P``. The features, in order:
+
+    * ``log10(s / scale_m)`` with ``s = sqrt(tr P_oo)`` propagated ``1 + latency_steps``
+      steps ahead without new data: the object's RMS position uncertainty when the packet
+      sent now would be used (what :class:`~codesign_mb.adaptation.rules.CovarianceTriggeredQos`
+      thresholds). On the conveyor: about -0.2 just after a delivery, 0.5 at age 10, 0.9
+      at age 20, 1.3 for the prior;
+    * if ``lift_indicator``: 1 once the held object has been lifted ``lift_margin_m`` above
+      where it was first seen, else 0 (the pick's last phase, seen from ``y``);
+    * if ``elapsed_time``: the packet's step over the horizon, ``t / T`` (the phase in time).
+
+    The robot's MPC phase itself is not a feature: it lives on the robot and is not in
+    ``(y, zeta)``; the two indicators above are its edge-side proxies.
+
+    Parameters
+    ----------
+    replica:
+        The edge's predictor replica.
+    horizon:
+        Episode length ``T`` (needed with ``elapsed_time``).
+    latency_steps:
+        ``tau`` of the requests (the paper's fixed one step).
+    scale_m:
+        Reference uncertainty of the log scale (m).
+    lift_indicator, elapsed_time:
+        Which optional features to append.
+    """
+
+    def __init__(
+        self,
+        replica: Any,
+        *,
+        horizon: int | None = None,
+        latency_steps: int = 1,
+        scale_m: float = 0.01,
+        lift_indicator: bool = True,
+        elapsed_time: bool = True,
+    ) -> None:
+        if latency_steps < 0:
+            raise ValueError(f"latency_steps must be >= 0, got {latency_steps}")
+        if not scale_m > 0:
+            raise ValueError(f"scale_m must be > 0, got {scale_m!r}")
+        if elapsed_time and (horizon is None or horizon < 1):
+            raise ValueError(f"elapsed_time needs a horizon >= 1, got {horizon!r}")
+        self.replica = replica
+        self.horizon = None if horizon is None else int(horizon)
+        self.latency_steps = int(latency_steps)
+        self.scale_m = float(scale_m)
+        self.lift_indicator = bool(lift_indicator)
+        self.elapsed_time = bool(elapsed_time)
+        self.dim = 1 + int(self.lift_indicator) + int(self.elapsed_time)
+
+    @classmethod
+    def from_env(
+        cls,
+        env: Any,
+        *,
+        latency_steps: int = 1,
+        scale_m: float = 0.01,
+        lift_indicator: bool = True,
+        elapsed_time: bool = True,
+        lift_margin_m: float | None = 0.03,
+        predictor_options: dict[str, Any] | None = None,
+    ) -> PredictorStdFeature:
+        """For a plant (wrapped or not): the robot's predictor settings and the horizon."""
+        from codesign_mb.adaptation.rules import PredictorReplica
+
+        replica = PredictorReplica.from_env(
+            env, lift_margin_m=lift_margin_m, predictor_options=predictor_options
+        )
+        horizon = getattr(env.unwrapped, "horizon", None)
+        return cls(
+            replica,
+            horizon=None if horizon is None else int(horizon),
+            latency_steps=latency_steps,
+            scale_m=scale_m,
+            lift_indicator=lift_indicator,
+            elapsed_time=elapsed_time,
+        )
+
+    def reset(self) -> None:
+        self.replica.reset()
+
+    def __call__(self, observation: NDArray[np.float64], age: int) -> NDArray[np.float64]:
+        self.replica.observe(observation, age)
+        t = self.replica.calls - 1  # the step of the packet these features are for
+        std = self.replica.position_std_ahead(1 + self.latency_steps)
+        out = [math.log10(std / self.scale_m)]
+        if self.lift_indicator:
+            out.append(float(self.replica.lifted))
+        if self.elapsed_time:
+            assert self.horizon is not None
+            out.append(t / self.horizon)
+        return np.array(out)
+
+
 QOS_FEATURES: dict[str, str] = {
     "elapsed_time": "codesign_mb.adaptation.learned:ElapsedTimeFeature.from_env",
+    "predictor_std": "codesign_mb.adaptation.learned:PredictorStdFeature.from_env",
 }
 """Feature kind -> factory ``"module:callable"`` called as ``callable(env, **options)``.
 

@@ -16,6 +16,9 @@ No learning. Both rules are :class:`~codesign_mb.adaptation.base.QosPolicy` obje
     otherwise, and ``low`` once the object is lifted (the paper's learned policy likewise
     drops to a fixed low value after the lift, ``fig_lat``).
 
+:class:`PredictorReplica` is that replica (also what a learned QoS policy may be given, the
+``predictor_std`` feature of :mod:`codesign_mb.adaptation.learned`).
+
 :func:`tune_threshold` finds, by bisection, the largest threshold (the least network) that
 still meets a success constraint.
 """
@@ -32,7 +35,13 @@ from numpy.typing import NDArray
 
 from codesign_mb.network.qos import QosRequest
 
-__all__ = ["AgeTriggeredQos", "CovarianceTriggeredQos", "ThresholdSearch", "tune_threshold"]
+__all__ = [
+    "AgeTriggeredQos",
+    "CovarianceTriggeredQos",
+    "PredictorReplica",
+    "ThresholdSearch",
+    "tune_threshold",
+]
 
 
 @dataclass(frozen=True)
@@ -60,6 +69,135 @@ class AgeTriggeredQos:
     def request(self, observation: NDArray[np.float64], age: int) -> QosRequest:
         q = self.high if age >= self.max_age_steps else self.low
         return QosRequest(q, self.latency_steps)
+
+
+class PredictorReplica:
+    """The robot's delay-compensating predictor, replicated at the edge from what it holds.
+
+    What the model-based QoS rule (:class:`CovarianceTriggeredQos`) and the learned QoS
+    policy's ``predictor_std`` feature
+    (:class:`~codesign_mb.adaptation.learned.PredictorStdFeature`) know of the robot: fed,
+    once per packet, exactly what the robot holds, its
+    :class:`~codesign_mb.estimation.predictor.DelayCompensatingPredictor` has the robot's
+    error covariance ``P`` one step behind (``P`` depends on the delivery pattern only).
+    It also latches whether the held object has been lifted ``lift_margin_m`` above where it
+    was first seen (a measurement, not the prior).
+
+    Parameters
+    ----------
+    layout:
+        Name -> slice of the *remote* part of the observation: ``"object_pos"`` and
+        optionally ``"object_vel"``.
+    control_period_s:
+        Control period (the predictor's ``dt``).
+    lift_margin_m:
+        Height above the first held position that counts as lifted (``None``: never).
+    predictor_options:
+        Keyword arguments of the predictor (noise levels, prior belt velocity).
+    """
+
+    def __init__(
+        self,
+        layout: Mapping[str, slice],
+        *,
+        control_period_s: float,
+        lift_margin_m: float | None = 0.03,
+        predictor_options: Mapping[str, Any] | None = None,
+    ) -> None:
+        from codesign_mb.estimation.predictor import DelayCompensatingPredictor
+
+        if lift_margin_m is not None and not lift_margin_m > 0:
+            raise ValueError(f"lift_margin_m must be > 0 or None, got {lift_margin_m!r}")
+        self.lift_margin_m = lift_margin_m
+        self.predictor = DelayCompensatingPredictor(
+            layout, control_period_s=control_period_s, **dict(predictor_options or {})
+        )
+        self._pos = self.predictor._pos
+        self.calls = 0
+        self._start_z: float | None = None
+        self.lifted = False
+
+    @staticmethod
+    def env_arguments(env: Any, predictor_options: Mapping[str, Any] | None = None) -> dict:
+        """``layout``, ``control_period_s`` and ``predictor_options`` for a plant env.
+
+        The remote layout of the plant, and the robot's predictor settings
+        (:meth:`DelayCompensatingPredictor.from_env`), overridden by ``predictor_options``.
+        """
+        from codesign_mb.estimation.predictor import DelayCompensatingPredictor
+
+        plant = env.unwrapped
+        remote = plant.remote_slice
+        layout = {
+            name: slice(s.start - remote.start, s.stop - remote.start)
+            for name, s in plant.observation_layout.items()
+            if s.start >= remote.start and s.stop <= remote.stop
+        }
+        reference = DelayCompensatingPredictor.from_env(env)
+        options = {
+            "prior_velocity": tuple(reference.prior_velocity),
+            "position_noise_std": reference.position_noise_std,
+            "velocity_noise_std": reference.velocity_noise_std,
+            "accel_std": reference.accel_std,
+            **dict(predictor_options or {}),
+        }
+        return {
+            "layout": layout,
+            "control_period_s": float(plant.control_period_s),
+            "predictor_options": options,
+        }
+
+    @classmethod
+    def from_env(
+        cls,
+        env: Any,
+        *,
+        lift_margin_m: float | None = 0.03,
+        predictor_options: Mapping[str, Any] | None = None,
+    ) -> PredictorReplica:
+        """For a plant (wrapped or not), with the robot's predictor settings."""
+        return cls(lift_margin_m=lift_margin_m, **cls.env_arguments(env, predictor_options))
+
+    def reset(self) -> None:
+        """Start an episode (the predictor restarts from the next held state)."""
+        self.calls = 0
+        self._start_z = None
+        self.lifted = False
+
+    def observe(self, observation: NDArray[np.float64], age: int) -> None:
+        """Take in ``(y_{t-1}, zeta_{t-1})``, what the robot held when packet ``t`` is sent."""
+        calls, self.calls = self.calls, self.calls + 1
+        held = np.asarray(observation, dtype=float)
+        if calls == 0:  # t = 0: the robot holds the prior, nothing measured yet
+            self._start_z = float(held[self._pos[2]])
+            return
+        wrapped = np.append(held, float(age))
+        if calls == 1:
+            self.predictor.reset(wrapped)
+        else:
+            self.predictor.estimate(wrapped, np.zeros(0))
+        if (  # the held state is a measurement (not the prior) of a lifted object
+            self.lift_margin_m is not None
+            and self._start_z is not None
+            and age < calls
+            and held[self._pos[2]] > self._start_z + self.lift_margin_m
+        ):
+            self.lifted = True
+
+    @property
+    def covariance(self) -> NDArray[np.float64]:
+        """The robot's ``P`` at the latest held step (the prior's before anything is held)."""
+        if self.calls < 2:  # the predictor starts from the second held state, (y_0, zeta_0)
+            return self.predictor.prior_covariance
+        return self.predictor.covariance
+
+    def position_std_ahead(self, steps: int) -> float:
+        """RMS position uncertainty ``steps`` steps after the latest held state, no new data."""
+        P = self.covariance
+        A, Q = self.predictor.A, self.predictor.Q
+        for _ in range(steps):
+            P = A @ P @ A.T + Q
+        return float(math.sqrt(max(np.trace(P[:3, :3]), 0.0)))
 
 
 class CovarianceTriggeredQos:
@@ -107,27 +245,22 @@ class CovarianceTriggeredQos:
         lift_margin_m: float | None = 0.03,
         predictor_options: Mapping[str, Any] | None = None,
     ) -> None:
-        from codesign_mb.estimation.predictor import DelayCompensatingPredictor
-
         QosRequest(low, latency_steps)
         QosRequest(high, latency_steps)
         if latency_steps < 1:
             raise ValueError(f"latency_steps must be >= 1, got {latency_steps}")
         if not (math.isfinite(threshold_m) and threshold_m > 0):
             raise ValueError(f"threshold_m must be > 0, got {threshold_m!r}")
-        if lift_margin_m is not None and not lift_margin_m > 0:
-            raise ValueError(f"lift_margin_m must be > 0 or None, got {lift_margin_m!r}")
         self.low, self.high = float(low), float(high)
         self.latency_steps = int(latency_steps)
         self.threshold_m = float(threshold_m)
         self.lift_margin_m = lift_margin_m
-        self.predictor = DelayCompensatingPredictor(
-            layout, control_period_s=control_period_s, **dict(predictor_options or {})
+        self.replica = PredictorReplica(
+            layout,
+            control_period_s=control_period_s,
+            lift_margin_m=lift_margin_m,
+            predictor_options=predictor_options,
         )
-        self._pos = self.predictor._pos
-        self._calls = 0
-        self._start_z: float | None = None
-        self._lifted = False
 
     @classmethod
     def from_env(cls, env: Any, **options: Any) -> CovarianceTriggeredQos:
@@ -136,63 +269,27 @@ class CovarianceTriggeredQos:
         ``options`` are the constructor's keyword arguments (``predictor_options`` entries
         override what is read from the plant).
         """
-        from codesign_mb.estimation.predictor import DelayCompensatingPredictor
+        arguments = PredictorReplica.env_arguments(env, options.pop("predictor_options", None))
+        return cls(**arguments, **options)
 
-        plant = env.unwrapped
-        remote = plant.remote_slice
-        layout = {
-            name: slice(s.start - remote.start, s.stop - remote.start)
-            for name, s in plant.observation_layout.items()
-            if s.start >= remote.start and s.stop <= remote.stop
-        }
-        reference = DelayCompensatingPredictor.from_env(env)
-        predictor = {
-            "prior_velocity": tuple(reference.prior_velocity),
-            "position_noise_std": reference.position_noise_std,
-            "velocity_noise_std": reference.velocity_noise_std,
-            "accel_std": reference.accel_std,
-            **dict(options.pop("predictor_options", None) or {}),
-        }
-        return cls(
-            layout,
-            control_period_s=float(plant.control_period_s),
-            predictor_options=predictor,
-            **options,
-        )
+    @property
+    def predictor(self) -> Any:
+        """The edge's replica of the robot's predictor."""
+        return self.replica.predictor
 
     def reset(self, *, seed: int | None = None) -> None:
-        self._calls = 0
-        self._start_z = None
-        self._lifted = False
+        self.replica.reset()
 
     def position_std_ahead(self, steps: int) -> float:
         """RMS position uncertainty ``steps`` steps after the latest held state, no new data."""
-        P = self.predictor.covariance
-        A, Q = self.predictor.A, self.predictor.Q
-        for _ in range(steps):
-            P = A @ P @ A.T + Q
-        return float(math.sqrt(max(np.trace(P[:3, :3]), 0.0)))
+        return self.replica.position_std_ahead(steps)
 
     def request(self, observation: NDArray[np.float64], age: int) -> QosRequest:
         """``(q_t, tau)`` from ``y_{t-1}`` (the remote part the robot holds) and ``zeta_{t-1}``."""
-        calls, self._calls = self._calls, self._calls + 1
-        held = np.asarray(observation, dtype=float)
-        if calls == 0:  # t = 0: the robot holds the prior, nothing measured yet
-            self._start_z = float(held[self._pos[2]])
+        self.replica.observe(observation, age)
+        if self.replica.calls == 1:  # t = 0: the robot holds the prior, nothing measured yet
             return QosRequest(self.high, self.latency_steps)
-        wrapped = np.append(held, float(age))
-        if calls == 1:
-            self.predictor.reset(wrapped)
-        else:
-            self.predictor.estimate(wrapped, np.zeros(0))
-        if (  # the held state is a measurement (not the prior) of a lifted object
-            self.lift_margin_m is not None
-            and self._start_z is not None
-            and age < calls
-            and held[self._pos[2]] > self._start_z + self.lift_margin_m
-        ):
-            self._lifted = True
-        if self._lifted:
+        if self.replica.lifted:
             return QosRequest(self.low, self.latency_steps)
         # The packet sent now (step t) is used from t + tau on: the uncertainty then without it.
         std = self.position_std_ahead(1 + self.latency_steps)

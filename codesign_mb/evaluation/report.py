@@ -111,6 +111,7 @@ LABEL_COLUMNS: tuple[str, ...] = (
     "scheduler",
     "allocator",
     "channel",
+    "plant",
 )
 """Columns identifying a curve or a table row, in display order."""
 
