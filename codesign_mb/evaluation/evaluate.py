@@ -29,6 +29,7 @@ import math
 import os
 import pickle
 import statistics
+import sys
 import time
 import warnings
 from collections.abc import Callable, Iterator, Mapping, Sequence
@@ -61,6 +62,7 @@ __all__ = [
     "rows_to_table",
     "run_config",
     "run_jobs",
+    "single_threaded_worker",
     "summarize",
     "wilson_interval",
 ]
@@ -350,7 +352,23 @@ def _runner_for(job: int) -> _Runner:
     return runner
 
 
+def single_threaded_worker() -> None:
+    """Process-pool initializer: one OpenMP/BLAS thread in this worker process.
+
+    Workers already use every core; torch's default of one intra-op thread per core makes
+    the small networks of the learned components about 20x slower when the workers share
+    the cores (SAC's actor: 6.6 ms a call instead of 0.3 ms on 2 cores). An explicit
+    ``OMP_NUM_THREADS`` in the environment is kept.
+    """
+    for variable in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
+        os.environ.setdefault(variable, "1")
+    torch = sys.modules.get("torch")
+    if torch is not None:
+        torch.set_num_threads(int(os.environ["OMP_NUM_THREADS"]))
+
+
 def _init_worker(payloads: list[bytes]) -> None:
+    single_threaded_worker()
     _RUNNERS.clear()
     _PAYLOADS[:] = payloads
 

@@ -371,6 +371,9 @@ def _quiet_on_interrupt() -> None:
     the driver reports the interruption once."""
     import signal
 
+    from codesign_mb.evaluation.evaluate import single_threaded_worker
+
+    single_threaded_worker()
     signal.signal(signal.SIGINT, _exit_interrupted)
 
 

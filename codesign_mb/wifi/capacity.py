@@ -364,7 +364,11 @@ def run_capacity(
 
     # Largest points first keeps both workers busy to the end; rows go back in grid order.
     order = sorted(range(len(points)), key=lambda j: -points[j]["n_robots"])
-    with ProcessPoolExecutor(config.workers, mp_context=get_context("spawn")) as pool:
+    from codesign_mb.evaluation.evaluate import single_threaded_worker
+
+    with ProcessPoolExecutor(
+        config.workers, mp_context=get_context("spawn"), initializer=single_threaded_worker
+    ) as pool:
         mapped = pool.map(_run_point_kwargs, [(config, points[j]) for j in order])
         done = list(progress(mapped) if progress is not None else mapped)
     ordered: list[dict[str, Any]] = [{}] * len(points)
