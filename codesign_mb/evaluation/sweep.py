@@ -367,8 +367,9 @@ def _iter_serial(pending: Pending) -> Iterator[tuple[str, dict[str, Scalar]]]:
 
 
 def _quiet_on_interrupt() -> None:
-    """Worker initializer: Ctrl-C (sent to the whole process group) ends a worker quietly;
-    the driver reports the interruption once."""
+    """Worker initializer: one BLAS/OpenMP thread per worker (``single_threaded_worker``),
+    and Ctrl-C (sent to the whole process group) ends a worker quietly; the driver reports
+    the interruption once."""
     import signal
 
     from codesign_mb.evaluation.evaluate import single_threaded_worker
