@@ -281,6 +281,7 @@ def test_qos_env_episode_statistics_and_failure_loss() -> None:
         done = terminated or truncated
         n += 1
     assert n == 41  # packets 0..T
+    assert terminated and not truncated  # J is scored at T: no bootstrapping past it
     assert info["qos_episode"] == {
         "success": False,
         "constraint": 1.0,
@@ -404,6 +405,11 @@ def test_stage_d_continues_estimator_and_qos(pipeline: dict[str, Path]) -> None:
     assert load_estimator(pipeline["out_d"] / "mlp.pt").kind == "mlp"
     qos_meta = json.loads((pipeline["out_d"] / "qos" / "training.json").read_text())
     assert qos_meta["warm_start"] == str(pipeline["out_c"])
+    # the multiplier continues from stage C's (which dual ascent moved every episode); stage
+    # D's 100 steps finish no 20-episode window, so it ends there too
+    lam_c = json.loads((pipeline["out_c"] / "training.json").read_text())["lambda"]
+    assert lam_c != StageCConfig().env.lam
+    assert qos_meta["lambda"] == pytest.approx(lam_c)
     LearnedQosPolicy.load(pipeline["out_d"] / "qos")
 
 
@@ -438,3 +444,17 @@ def test_configs_reject_bad_values() -> None:
         build("estimator", ComponentSpec("nope"), make_plant(TOY))
     with pytest.raises(ValueError, match="needs a checkpoint"):
         build("controller", ComponentSpec("sac"), make_plant(TOY))
+
+
+def test_stage_d_rejects_features_the_stage_c_policy_lacks(
+    pipeline: dict[str, Path], tmp_path
+) -> None:
+    config = StageDConfig(
+        plant=TOY,
+        controller=ComponentSpec("sac", str(pipeline["out_a"] / "model.zip")),
+        estimator=ComponentSpec("mlp", str(pipeline["out_b"] / "mlp.pt")),
+        qos_policy=str(pipeline["out_c"]),
+        qos=StageCConfig(features="predictor_std"),
+    )
+    with pytest.raises(ValueError, match="trained with None"):
+        train_stage_d(config, out_dir=tmp_path / "out", work_dir=tmp_path / "work")

@@ -9,7 +9,10 @@ estimator" into a Gymnasium env whose agent is the QoS policy. One agent step is
   default, like the paper);
 * the packet ``x_t`` is sent with it, the robot runs ``u_t = controller(estimator(y_t,
   zeta_t))`` (``eq_c_pol2``) and the plant steps;
-* reward ``-(C(q_t) + lambda (L(x_t) - J_max / T))`` (``eq_q_t_pol2``).
+* reward ``-(C(q_t) + lambda (L(x_t) - J_max / T))`` (``eq_q_t_pol2``);
+* the plant's horizon ``T`` *terminates* the agent's episode: ``J`` is scored at ``T`` and
+  nothing follows, so the critic must not bootstrap past it as it would after a time limit
+  (the failure loss is paid exactly on that step).
 
 The controller/estimator pair is any :class:`~codesign_mb.control.Controller` and
 :class:`~codesign_mb.estimation.Estimator`, given by configuration
@@ -76,6 +79,7 @@ __all__ = [
     "StageCConfig",
     "evaluate_qos_agent",
     "train_stage_c",
+    "warm_start_multiplier",
 ]
 
 LOSSES = ("failure", "distance", "estimation_error")
@@ -279,7 +283,8 @@ class QosAdaptationEnv(gym.Env):
                 "mean_reliability": s["reliability"] / s["steps"],
                 "steps": s["steps"],
             }
-        return next_obs, reward, bool(terminated), bool(truncated), info
+        # The horizon ends the finite-horizon problem (J is scored at T): a termination.
+        return next_obs, reward, done, False, info
 
     def _loss(self, info: dict[str, Any], done: bool) -> float:
         kind = self.config.loss
@@ -424,6 +429,10 @@ class StageCConfig:
         Deterministic evaluation episodes after each chunk.
     warm_start:
         A saved QoS policy folder to continue from (stage D), or ``None``.
+    warm_start_lambda:
+        With ``warm_start``, start the multiplier where the warm-start run ended (its
+        ``training.json`` ``lambda``) instead of at ``env.lam``: the dual variable belongs
+        with the policy it was trained with.
     seed:
         Root seed.
     """
@@ -446,6 +455,7 @@ class StageCConfig:
     chunk_steps: int = 5_000
     eval_episodes: int = 20
     warm_start: str | None = None
+    warm_start_lambda: bool = True
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -528,6 +538,8 @@ def train_stage_c(
             model.set_random_seed(config.seed)
             model.num_timesteps = 0  # a new run: count this stage's steps from zero
             state.extra["warm_start"] = str(config.warm_start)
+            if config.warm_start_lambda:
+                state.extra["lambda"] = warm_start_multiplier(source, default=config.env.lam)
         else:
             model = make_sac(env, config.sac, seed=config.seed)
     assert state is not None
@@ -595,6 +607,16 @@ def train_stage_c(
     env.close()
     eval_env.close()
     return {"env_steps": state.steps_done, "wall_time_s": state.wall_time_s, **final}
+
+
+def warm_start_multiplier(policy_dir: str | Path, *, default: float) -> float:
+    """The multiplier a saved QoS policy's training ended with (``default`` if unrecorded)."""
+    import json
+
+    path = Path(policy_dir) / "training.json"
+    if not path.is_file():
+        return float(default)
+    return float(json.loads(path.read_text()).get("lambda", default))
 
 
 def _spec_json(spec: ComponentSpec) -> dict[str, Any]:

@@ -67,8 +67,9 @@ class StageDConfig:
     estimator_training:
         Optimiser settings of the continued fit.
     qos:
-        Stage-C settings of the re-training; its ``plant``, ``controller``, ``estimator``
-        and ``warm_start`` are set by this stage.
+        Stage-C settings of the re-training; its ``plant``, ``controller``, ``estimator``,
+        ``warm_start`` and ``features`` are set by this stage (the features are the stage-C
+        policy's; the multiplier starts at its final value, ``warm_start_lambda``).
     seed:
         Root seed.
     """
@@ -131,6 +132,13 @@ def train_stage_d(
     controller = build("controller", config.controller, probe)
     qos_dir = resolve_checkpoint(config.qos_policy)
     remote, position = probe.unwrapped.remote_slice, position_slice(probe)
+    # the warm start fixes the observation: the same extra features as the stage-C policy
+    saved = LearnedQosPolicy.read_meta(qos_dir).get("features") or {}
+    if config.qos.features is not None and config.qos.features != saved.get("kind"):
+        raise ValueError(
+            f"qos.features={config.qos.features!r} but the stage-C policy {qos_dir} was "
+            f"trained with {saved.get('kind')!r}"
+        )
 
     # 1. the estimator under the learned QoS policy's deliveries
     estimator_ckpt = work_dir / f"{kind}.pt"
@@ -200,6 +208,8 @@ def train_stage_d(
         controller=config.controller,
         estimator=ComponentSpec(kind, str(estimator_path)),
         warm_start=str(qos_dir),
+        features=saved.get("kind"),
+        feature_options=dict(saved.get("options") or {}),
     )
     qos_result = train_stage_c(
         qos_config,
