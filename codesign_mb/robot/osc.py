@@ -40,7 +40,8 @@ with ``R`` and ``x`` the TCP's rotation and position (the 1 carries the constant
 Pinocchio every ``model_period`` substeps, when the reference leash is also checked; the TCP
 pose and ``h`` are recomputed at every substep from the current state, so the feedback runs
 at 500 Hz. Inside the simulator they are read from MuJoCo's forward pass of the substep
-(:class:`SensedTcp`), which computes the same quantities of the same arm anyway.
+(:class:`SensedTcp`), which computes the same quantities of the same arm anyway, and the
+substeps between two refreshes of ``G`` run compiled (:mod:`codesign_mb.robot.native`).
 ``model_period=1`` is the exact law at every substep; the default refreshes ``G`` every
 20 ms (10 substeps): on a 0.4 m/s circle the worst tracking error goes from 1.13 mm
 (exact) to 1.38 mm (``tests/test_robot.py`` bounds the difference), and most of the
@@ -56,9 +57,14 @@ from dataclasses import dataclass
 import numpy as np
 import pinocchio as pin
 from numpy.typing import ArrayLike, NDArray
-from scipy.linalg.lapack import dposv
 
 from codesign_mb.robot.model import GRIPPER_DOWN, N_ARM, PandaModel
+from codesign_mb.robot.native import (
+    affine_torque,
+    operational_space_map,
+    plan_reference,
+    run_substeps,
+)
 
 __all__ = ["OperationalSpaceController", "OscGains", "SensedTcp"]
 
@@ -109,13 +115,16 @@ class SensedTcp:
 
     ``forward()`` computes it (MuJoCo: ``mj_step1``); ``rotation`` (9, row-major),
     ``position`` (3) and ``bias`` (``h(q, qdot)``, at least the 7 arm entries) are live
-    views that it updates. Given to :meth:`OperationalSpaceController.run`.
+    views that it updates. ``addresses``: the ``MjModel`` and ``MjData`` addresses, for the
+    compiled substep loop (``None``: loop in Python). Given to
+    :meth:`OperationalSpaceController.run`.
     """
 
     forward: Callable[[], object]
     rotation: NDArray[np.float64]
     position: NDArray[np.float64]
     bias: NDArray[np.float64]
+    addresses: tuple[int, int] | None = None
 
 
 class OperationalSpaceController:
@@ -169,20 +178,18 @@ class OperationalSpaceController:
         self._v_ref = np.zeros(3)
         self._v_cmd = np.zeros(3)
         self._k = 0
-        self._ramp_cache: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None
-        # Stacked input s = [vec(R) (9), x (3), 1, x_r (3), r (3), q (nv), qdot (nv)] of the
-        # affine law tau = G s + h(q, qdot): the TCP's rotation (row-major) and position, a
-        # constant 1 that carries the constant term, the position reference x_r and the
-        # reference term r = K_d xdot_r + xddot_r.
+        self._no_workspace = np.zeros(3)
+        # Columns of G for the stacked input s = [vec(R) (9), x (3), 1, x_r (3), r (3),
+        # q (nv), qdot (nv)] of the affine law tau = G s + h(q, qdot): the TCP's rotation
+        # (row-major) and position, a constant 1 that carries the constant term, the
+        # position reference x_r and the reference term r = K_d xdot_r + xddot_r
+        # (native.affine_torque evaluates it without stacking s).
         self._nv = nv
         self._iR = slice(0, 9)
         self._ix = slice(9, 12)
-        self._iref = slice(13, 19)
         self._iq = slice(19, 19 + nv)
         self._iv = slice(19 + nv, 19 + 2 * nv)
-        self._s = np.zeros(19 + 2 * nv)
-        self._s[12] = 1.0
-        self._G = np.zeros((N_ARM, self._s.size))
+        self._G = np.zeros((N_ARM, 19 + 2 * nv))
         self._tau = np.zeros(N_ARM)
         self._set_input_maps()
 
@@ -256,29 +263,75 @@ class OperationalSpaceController:
         set to the same limits). With ``sensed``, the TCP pose and ``h`` of each substep are
         read from the simulator's own forward pass (``sensed.forward``, e.g. ``mj_step1``;
         ``step`` then finishes the step, ``mj_step2``) instead of being recomputed by
-        Pinocchio: the same numbers (``tests/test_robot.py``: 1e-15) without computing them
-        twice. ``J``, ``M`` and ``Lambda`` always come from the Pinocchio model.
-        This is the plant's hot path: locals bound once, preallocated buffers, five copies
-        into the stacked input and one 7x37 matrix-vector product per substep.
+        Pinocchio: the same numbers (``tests/test_robot.py``) without computing them twice;
+        with ``sensed.addresses`` too, the substeps between two refreshes of ``G`` run
+        compiled (:mod:`codesign_mb.robot.native`; ``step`` is then not called). ``J``,
+        ``M`` and ``Lambda`` always come from the Pinocchio model.
         """
-        model, data, fid = self.robot.model, self.robot.data, self.robot.tcp_id
         refs = self._plan_reference(n)
-        s, G, period = self._s, self._G, self.model_period
-        rot, pos = s[self._iR], s[self._ix]
-        ref, s_q, s_v = s[self._iref], s[self._iq], s[self._iv]
-        limit, max_lag = self.torque_limit, self.gains.max_lag_m
+        if sensed is not None and sensed.addresses is not None and run_substeps is not None:
+            self._run_native(q, v, ctrl, n, refs, clip, sensed)
+        else:
+            self._run_python(q, v, ctrl, step, n, refs, clip, sensed)
+        self._x_ref[:] = refs[-1, :3]
+
+    def _leash(self, refs: NDArray[np.float64], i: int, position: NDArray[np.float64]) -> None:
+        # Keep the reference within max_lag of the TCP (checked at each model refresh).
+        error = refs[i, :3] - position
+        dist = math.sqrt(error @ error)
+        max_lag = self.gains.max_lag_m
+        if dist > max_lag:
+            refs[i:, :3] -= error * (1.0 - max_lag / dist)
+
+    def _run_native(
+        self,
+        q: NDArray[np.float64],
+        v: NDArray[np.float64],
+        ctrl: NDArray[np.float64],
+        n: int,
+        refs: NDArray[np.float64],
+        clip: bool,
+        sensed: SensedTcp,
+    ) -> None:
+        # Python refreshes G (Pinocchio) at the first substep of each block, after that
+        # substep's mj_step1; the compiled loop runs the block.
+        model, data = sensed.addresses
+        rot, pos, bias = sensed.rotation, sensed.position, sensed.bias
+        G, limit, period, k = self._G, self.torque_limit, self.model_period, self._k
+        i = 0
+        while i < n:
+            refresh = k % period == 0
+            if refresh:
+                sensed.forward()
+                self._update_model(q)
+                self._leash(refs, i, pos)
+            stop = min(n, i + period - k % period)
+            run_substeps(
+                model, data, G, refs, i, stop, refresh, rot, pos, q, v, bias, limit, clip, ctrl
+            )
+            k += stop - i
+            i = stop
+        self._k = k
+
+    def _run_python(
+        self,
+        q: NDArray[np.float64],
+        v: NDArray[np.float64],
+        ctrl: NDArray[np.float64],
+        step: Callable[[], object] | None,
+        n: int,
+        refs: NDArray[np.float64],
+        clip: bool,
+        sensed: SensedTcp | None,
+    ) -> None:
+        model, data, fid = self.robot.model, self.robot.data, self.robot.tcp_id
+        G, limit, period, k = self._G, self.torque_limit, self.model_period, self._k
         forward, place, nle = pin.forwardKinematics, pin.updateFramePlacement, pin.nonLinearEffects
-        dot, add = np.dot, np.add
-        if sensed is not None:
-            sense, sensed_rot, sensed_pos = sensed.forward, sensed.rotation, sensed.position
-            bias = sensed.bias[:N_ARM]
-        k = self._k
         for i in range(n):
             refresh = k % period == 0
             if sensed is not None:
-                sense()
-                rot[:] = sensed_rot
-                pos[:] = sensed_pos
+                sensed.forward()
+                rot, pos, bias = sensed.rotation, sensed.position, sensed.bias
                 if refresh:
                     self._update_model(q)
             else:
@@ -287,93 +340,35 @@ class OperationalSpaceController:
                 else:
                     forward(model, data, q)
                 placement = place(model, data, fid)
-                rot[:] = placement.rotation.ravel()
-                pos[:] = placement.translation
-                bias = nle(model, data, q, v)[:N_ARM]
+                rot, pos = placement.rotation.ravel(), placement.translation
+                bias = nle(model, data, q, v)
             if refresh:
-                # Keep the reference on a leash (checked at each model refresh).
-                error = refs[i, :3] - pos
-                dist = float(np.sqrt(error @ error))
-                if dist > max_lag:
-                    refs[i:, :3] -= error * (1.0 - max_lag / dist)
+                self._leash(refs, i, pos)
             k += 1
-            ref[:] = refs[i]
-            s_q[:] = q
-            s_v[:] = v
-            if clip:
-                tau = dot(G, s)
-                tau += bias
-                np.minimum(tau, limit, out=tau)
-                np.maximum(tau, -limit, out=tau)
-                ctrl[:] = tau
-            else:
-                add(dot(G, s), bias, out=ctrl)
+            affine_torque(G, rot, pos, refs[i], q, v, bias, limit, clip, ctrl)
             if step is not None:
                 step()
         self._k = k
-        self._x_ref[:] = refs[-1, :3]
 
     def _plan_reference(self, n: int) -> NDArray[np.float64]:
-        # The reference velocity moves towards the command with bounded acceleration
-        # (straight line in velocity space); the reference position is kept in the workspace.
-        # Returns, for each of the n substeps, the reference position after it and the
-        # reference term r = K_d xdot_r + xddot_r. In closed form: with the unit direction u
-        # of the velocity change and s_k the speed gained after k substeps,
-        # v_k = v_r + s_k u and x_k = x_r + dt (k v_r + (s_1 + ... + s_k) u).
-        dt, g = self.dt, self.gains
-        v0, x0 = self._v_ref, self._x_ref
-        delta = self._v_cmd - v0
-        dist = math.sqrt(np.dot(delta, delta))
-        k_dt, ramp = self._ramps(n)
+        # The reference of the next n substeps (native.plan_reference): per substep, the
+        # position reference after it and the term r = K_d xdot_r + xddot_r.
+        g = self.gains
         refs = np.empty((n, 6))
-        x, r = refs[:, :3], refs[:, 3:]
-        np.multiply.outer(k_dt, v0, out=x)
-        x += x0
-        if dist == 0.0:
-            r[:] = v0 * g.kd_pos
+        if self.workspace is None:
+            low, high, radius, bounded = self._no_workspace, self._no_workspace, np.inf, False
         else:
-            reached = np.minimum(ramp, dist)
-            u = delta / dist
-            x += np.multiply.outer(np.cumsum(reached) * dt, u)
-            r[:] = v0 * g.kd_pos
-            gained = reached.copy()  # speed gained in each substep (np.diff is slower)
-            gained[1:] -= reached[:-1]
-            r += np.multiply.outer(reached * g.kd_pos + gained / dt, u)
-        if self.workspace is not None and self._project(x):
-            # Stopped or sliding at the boundary: the velocity is the projected one's and
-            # the acceleration feedforward is dropped.
-            v = np.diff(x, axis=0, prepend=x0[None]) / dt
-            np.multiply(v, g.kd_pos, out=r)
-            self._v_ref[:] = v[-1]
-        elif dist != 0.0:
-            self._v_ref += reached[-1] * u
+            (low, high, radius), bounded = self.workspace, True
+        plan_reference(
+            self._x_ref, self._v_ref, self._v_cmd, self.dt, g.kd_pos, g.max_accel_mps2,
+            low, high, radius, bounded, refs, self._v_ref,
+        )  # fmt: skip
         return refs
-
-    def _ramps(self, n: int) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-        # k dt and the speed a_max k dt gained after k = 1..n substeps (cached per n).
-        if self._ramp_cache is None or self._ramp_cache[0].size != n:
-            k = np.arange(1, n + 1, dtype=float)
-            self._ramp_cache = (k * self.dt, k * (self.gains.max_accel_mps2 * self.dt))
-        return self._ramp_cache
-
-    def _project(self, x: NDArray[np.float64]) -> bool:
-        # Project reference positions (n, 3) in place into the workspace; True if any moved.
-        low, high, radius = self.workspace
-        lo, hi = x.min(axis=0), x.max(axis=0)
-        rxy2 = np.einsum("ij,ij->i", x[:, :2], x[:, :2])
-        if (lo >= low).all() and (hi <= high).all() and rxy2.max() <= radius * radius:
-            return False  # the usual case: inside (the env brakes before the faces)
-        np.clip(x, low, high, out=x)
-        rxy = np.hypot(x[:, 0], x[:, 1])
-        over = rxy > radius
-        if over.any():
-            x[over, :2] *= (radius / rxy[over])[:, None]
-        return True
 
     def _set_input_maps(self) -> None:
         # G = J^T Lambda P + N^T M Q: P (6 x ns) maps s to the task-space acceleration a
         # (its qdot block, -K_d J, is refreshed with J), Q (7 x ns) to the posture term.
-        g, ns = self.gains, self._s.size
+        g, ns = self.gains, self._G.shape[1]
         iq, iv = self._iq.start, self._iv.start
         P = np.zeros((6, ns))
         # + K_R e_R with e_R = L vec(R)
@@ -385,26 +380,15 @@ class OperationalSpaceController:
         Q[:, 12] = g.kp_null * self.posture  # s[12] = 1 carries the constant
         Q[:, iq : iq + N_ARM] = -g.kp_null * np.eye(N_ARM)
         Q[:, iv : iv + N_ARM] = -g.kd_null * np.eye(N_ARM)
-        self._P, self._Q = P, Q
-        self._Pv = P[:, iv : iv + N_ARM]  # view: -K_d J, set in _update_model
-        self._kd6_col = self._kd6[:, None]
+        self._P, self._Q = P, Q  # P's qdot block, -K_d J, is set with each new J
 
     def _update_model(self, q: NDArray[np.float64]) -> None:
         model, data = self.robot.model, self.robot.data
         J = pin.computeFrameJacobian(model, data, q, self.robot.tcp_id, pin.LOCAL_WORLD_ALIGNED)
-        J = J[:, :N_ARM]
-        M = pin.crba(model, data, q)[:N_ARM, :N_ARM]  # symmetric (both triangles filled)
-        # Cholesky solves (LAPACK dposv: no numpy.linalg overhead on these tiny systems).
-        # np.dot: less call overhead than the @ operator on these tiny matrices.
-        dot = np.dot
-        _, MinvJt, info = dposv(M, J.T)
-        _, LamJ, info_lam = dposv(dot(J, MinvJt), J)
-        if info or info_lam:  # at a singularity: damped least squares
-            _, LamJ, info_lam = dposv(dot(J, MinvJt) + _SINGULAR_DAMPING * np.eye(6), J)
-        JtL = LamJ.T  # J^T Lambda (Lambda is symmetric)
-        NtM = M - dot(JtL, J)  # N^T M = (I - J^T Lambda J M^-1) M
-        np.multiply(self._kd6_col, -J, out=self._Pv)
-        np.add(dot(JtL, self._P), dot(NtM, self._Q), out=self._G)
+        M = pin.crba(model, data, q)  # symmetric (both triangles filled)
+        operational_space_map(
+            J, M, self._P, self._Q, self._kd6, self._iv.start, _SINGULAR_DAMPING, self._G
+        )
 
 
 def _orientation_error_map(rotation_ref: NDArray[np.float64]) -> NDArray[np.float64]:

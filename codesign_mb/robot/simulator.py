@@ -9,6 +9,7 @@ rewards or observations; :mod:`codesign_mb.plants.conveyor` builds the task on i
 
 from __future__ import annotations
 
+from dataclasses import replace
 from functools import lru_cache, partial
 
 import mujoco
@@ -55,6 +56,11 @@ class ConveyorSimulator:
         :class:`~codesign_mb.robot.osc.OperationalSpaceController`).
     grasp_force_n, finger_speed_mps:
         Gripper force limit per finger and finger speed.
+    compiled:
+        Run the substeps between two model refreshes compiled
+        (:mod:`codesign_mb.robot.native`); ``False``: the same law looped in Python, with
+        each physics step's second half through :attr:`_mj_step2` (which the benchmark
+        hooks to record the torques). Same torques either way.
     """
 
     def __init__(
@@ -67,6 +73,7 @@ class ConveyorSimulator:
         model_period: int = 10,
         grasp_force_n: float = 20.0,
         finger_speed_mps: float = 0.1,
+        compiled: bool = True,
     ) -> None:
         self.scene: Scene = build_scene(
             object_kind, grasp_force_n=grasp_force_n, finger_speed_mps=finger_speed_mps
@@ -95,7 +102,9 @@ class ConveyorSimulator:
             rotation=self.data.site_xmat[sc.tcp_site],
             position=self.data.site_xpos[sc.tcp_site],
             bias=self.data.qfrc_bias[sc.arm_qvel],
+            addresses=(self.model._address, self.data._address),
         )
+        self.compiled = bool(compiled)
         self._left_geoms = frozenset(sc.left_finger_geoms)
         self._right_geoms = frozenset(sc.right_finger_geoms)
         self._tcp_pos = np.zeros(3)
@@ -166,7 +175,7 @@ class ConveyorSimulator:
             self._mj_step2,
             self.n_substeps,
             clip=False,
-            sensed=self._sensed,
+            sensed=self._sensed if self.compiled else replace(self._sensed, addresses=None),
         )
         if d.warning[mujoco.mjtWarning.mjWARN_BADQACC].number:
             raise RuntimeError(

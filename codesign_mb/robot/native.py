@@ -1,0 +1,222 @@
+"""The operational-space law and the physics substeps, compiled (numba + MuJoCo's C API).
+
+The plant's hot path is 20 physics substeps per control step with the affine law
+``tau = G s + h`` (:mod:`codesign_mb.robot.osc`) between MuJoCo's ``mj_step1`` and
+``mj_step2``. Written in Python, each substep costs about ten numpy and binding calls, as
+much as the physics itself. Here numba compiles the law and the substep loop; the loop calls
+``mj_step1`` / ``mj_step2`` of the ``libmujoco`` the Python bindings loaded (ctypes, on the
+``MjModel`` / ``MjData`` addresses), so a block of substeps is one call from Python.
+
+:func:`affine_torque` is the single implementation of the law: the Python reference path
+(:meth:`~codesign_mb.robot.osc.OperationalSpaceController.torque`) calls it too, so both
+paths compute bit-identical torques from identical inputs. :data:`run_substeps` is ``None``
+where the C library cannot be located (then the controller loops in Python).
+"""
+
+from __future__ import annotations
+
+import ctypes
+import glob
+import os
+
+import mujoco
+import numpy as np
+from numba import njit
+
+__all__ = ["affine_torque", "operational_space_map", "plan_reference", "run_substeps"]
+
+
+@njit(cache=True)
+def affine_torque(G, rot, pos, ref, q, v, bias, limit, clip, out):
+    """``out = G [vec(R), x, 1, x_r, r, q, qdot] + h``, optionally clipped to ``+-limit``.
+
+    ``G`` is the controller's (n_arm, 19 + 2 nv) map (osc module doc); ``rot`` the TCP
+    rotation (9, row-major), ``pos`` its position, ``ref`` the reference ``(x_r, r)`` (6),
+    ``q`` and ``v`` the joint positions and velocities (nv), ``bias`` ``h`` (>= n_arm).
+    """
+    nv = q.shape[0]
+    iq, iv = 19, 19 + nv
+    for j in range(out.shape[0]):
+        acc = G[j, 12]
+        for c in range(9):
+            acc += G[j, c] * rot[c]
+        for c in range(3):
+            acc += G[j, 9 + c] * pos[c]
+        for c in range(6):
+            acc += G[j, 13 + c] * ref[c]
+        for c in range(nv):
+            acc += G[j, iq + c] * q[c]
+        for c in range(nv):
+            acc += G[j, iv + c] * v[c]
+        acc += bias[j]
+        if clip:
+            acc = min(max(acc, -limit[j]), limit[j])
+        out[j] = acc
+
+
+@njit(cache=True)
+def plan_reference(x0, v0, v_cmd, dt, kd, a_max, low, high, radius, bounded, refs, v_end):
+    """The reference of the next ``n = len(refs)`` substeps (osc module doc).
+
+    The reference velocity moves from ``v0`` towards ``v_cmd`` with acceleration
+    ``a_max`` (a straight line in velocity space); the position integrates it from ``x0``.
+    ``refs[k] = (x_r, r)`` after substep ``k``, with ``r = K_d xdot_r + xddot_r``. With
+    ``bounded``, positions are projected into the box ``[low, high]`` and the cylinder of
+    ``radius`` around the z axis; where that moved any, the velocity is the projected
+    positions' and the acceleration feed-forward is dropped. ``v_end`` receives the
+    velocity reference after the last substep.
+    """
+    n = refs.shape[0]
+    d0, d1, d2 = v_cmd[0] - v0[0], v_cmd[1] - v0[1], v_cmd[2] - v0[2]
+    dist = (d0 * d0 + d1 * d1 + d2 * d2) ** 0.5
+    u = (d0 / dist, d1 / dist, d2 / dist) if dist > 0.0 else (0.0, 0.0, 0.0)
+    reached_before = 0.0
+    travelled = 0.0  # sum of the speeds gained so far, times dt
+    moved = False
+    for k in range(n):
+        reached = min((k + 1) * a_max * dt, dist)
+        travelled += reached * dt
+        accel = (reached - reached_before) / dt
+        reached_before = reached
+        for c in range(3):
+            x = x0[c] + (k + 1) * dt * v0[c] + travelled * u[c]
+            refs[k, c] = x
+            refs[k, 3 + c] = kd * (v0[c] + reached * u[c]) + accel * u[c]
+        if bounded:
+            for c in range(3):
+                x = min(max(refs[k, c], low[c]), high[c])
+                if x != refs[k, c]:
+                    refs[k, c] = x
+                    moved = True
+            rxy = (refs[k, 0] ** 2 + refs[k, 1] ** 2) ** 0.5
+            if rxy > radius:
+                refs[k, 0] *= radius / rxy
+                refs[k, 1] *= radius / rxy
+                moved = True
+    if moved:  # stopped or sliding at the boundary
+        for k in range(n):
+            for c in range(3):
+                before = x0[c] if k == 0 else refs[k - 1, c]
+                v_end[c] = (refs[k, c] - before) / dt
+            for c in range(3):
+                refs[k, 3 + c] = kd * v_end[c]
+    else:
+        for c in range(3):
+            v_end[c] = v0[c] + reached_before * u[c]
+
+
+@njit(cache=True)
+def _cholesky(A, L):
+    # L L^T = A (lower L); False if A is not positive definite.
+    n = A.shape[0]
+    for i in range(n):
+        for j in range(i + 1):
+            acc = A[i, j]
+            for k in range(j):
+                acc -= L[i, k] * L[j, k]
+            if i == j:
+                if acc <= 0.0:
+                    return False
+                L[i, i] = acc**0.5
+            else:
+                L[i, j] = acc / L[j, j]
+    return True
+
+
+@njit(cache=True)
+def _cholesky_solve(L, B, X):
+    # X = (L L^T)^-1 B, column by column.
+    n = L.shape[0]
+    for c in range(B.shape[1]):
+        for i in range(n):
+            acc = B[i, c]
+            for k in range(i):
+                acc -= L[i, k] * X[k, c]
+            X[i, c] = acc / L[i, i]
+        for i in range(n - 1, -1, -1):
+            acc = X[i, c]
+            for k in range(i + 1, n):
+                acc -= L[k, i] * X[k, c]
+            X[i, c] = acc / L[i, i]
+
+
+@njit(cache=True)
+def operational_space_map(J, M, P, Q, kd, iv, damping, G):
+    """``G = J^T Lambda P + N^T M Q`` of the affine law (osc module doc), in place.
+
+    ``J`` (6, >= n) and ``M`` (>= n, >= n) are the TCP Jacobian and the inertia, of which
+    the first ``n = G.shape[0]`` (arm) joints are used; ``Lambda = (J M^-1 J^T)^-1`` (damped
+    by ``damping`` at a singularity), ``N^T M = M - J^T Lambda J``. ``P``'s ``qdot`` block
+    (columns ``iv..iv+n``) is set to ``-K_d J`` (``kd``: the six task-space dampings) first.
+    """
+    n = G.shape[0]
+    Ja = np.ascontiguousarray(J[:, :n])
+    Ma = np.ascontiguousarray(M[:n, :n])
+    for r in range(6):
+        for c in range(n):
+            P[r, iv + c] = -kd[r] * Ja[r, c]
+    L = np.zeros((n, n))
+    _cholesky(Ma, L)  # the inertia (armature included) is positive definite
+    MinvJt = np.empty((n, 6))
+    _cholesky_solve(L, np.ascontiguousarray(Ja.T), MinvJt)
+    A = Ja @ MinvJt
+    La = np.zeros((6, 6))
+    if not _cholesky(A, La):  # at a singularity: damped least squares
+        for r in range(6):
+            A[r, r] += damping
+        _cholesky(A, La)
+    LamJ = np.empty((6, n))
+    _cholesky_solve(La, Ja, LamJ)
+    JtL = np.ascontiguousarray(LamJ.T)  # J^T Lambda (Lambda is symmetric)
+    NtM = Ma - JtL @ Ja
+    G[:, :] = JtL @ P + NtM @ Q
+
+
+def _load_step_functions():
+    """``mj_step1`` and ``mj_step2`` of the bindings' own ``libmujoco`` (or ``None``)."""
+    folder = os.path.dirname(mujoco.__file__)
+    candidates = sorted(
+        glob.glob(os.path.join(folder, "libmujoco.so*"))
+        + glob.glob(os.path.join(folder, "libmujoco*.dylib"))
+        + glob.glob(os.path.join(folder, "mujoco.dll"))
+    )
+    for path in candidates:
+        try:
+            lib = ctypes.CDLL(path)
+        except OSError:
+            continue
+        if lib.mj_version() != mujoco.mj_version():
+            continue
+        functions = []
+        for name in ("mj_step1", "mj_step2"):
+            fn = getattr(lib, name)
+            fn.argtypes = [ctypes.c_size_t, ctypes.c_size_t]  # mjModel*, mjData*
+            fn.restype = None
+            functions.append(fn)
+        return tuple(functions)
+    return None
+
+
+_STEP_FUNCTIONS = _load_step_functions()
+
+if _STEP_FUNCTIONS is not None:
+    _mj_step1, _mj_step2 = _STEP_FUNCTIONS
+
+    @njit
+    def _run_substeps(
+        model, data, G, refs, start, stop, sensed, rot, pos, q, v, bias, limit, clip, ctrl
+    ):
+        for i in range(start, stop):
+            if not sensed or i > start:
+                _mj_step1(model, data)
+            affine_torque(G, rot, pos, refs[i], q, v, bias, limit, clip, ctrl)
+            _mj_step2(model, data)
+
+    run_substeps = _run_substeps
+    """``run_substeps(model_address, data_address, G, refs, start, stop, sensed, rot, pos,
+    q, v, bias, limit, clip, ctrl)``: substeps ``start..stop-1`` of one control step, each
+    ``mj_step1``; ``ctrl[:] = tau`` (:func:`affine_torque` with ``refs[i]``); ``mj_step2``.
+    With ``sensed``, ``mj_step1`` of the first substep was already called (by Python, to
+    refresh ``G``). The arrays are live views into ``MjData``."""
+else:  # pragma: no cover - the wheels ship libmujoco next to the bindings
+    run_substeps = None
