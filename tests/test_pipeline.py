@@ -40,6 +40,7 @@ from codesign_mb.pipeline.stage_c import (
     QosAdaptationEnv,
     QosEnvConfig,
     StageCConfig,
+    feasible_score,
     train_stage_c,
 )
 from codesign_mb.pipeline.stage_d import StageDConfig, train_stage_d
@@ -397,6 +398,19 @@ def test_stage_c_with_features_round_trips(tmp_path) -> None:
     assert meta["lambda"] == config.env.lam  # fixed lambda
 
 
+def test_feasible_score_prefers_the_cheapest_feasible_policy() -> None:
+    points = [
+        {"eval_success_rate": 0.9, "eval_mean_reliability": 0.05},  # infeasible, cheap
+        {"eval_success_rate": 1.0, "eval_mean_reliability": 0.40},
+        {"eval_success_rate": 0.95, "eval_mean_reliability": 0.20},  # feasible, cheapest
+        {"eval_success_rate": 0.85, "eval_mean_reliability": 0.90},
+    ]
+    scores = [feasible_score(p, 0.95) for p in points]
+    assert int(np.argmax(scores)) == 2
+    assert scores[0] > scores[3]  # among infeasible ones: the more successful
+    assert feasible_score({"steps": 5}, 0.95) is None  # no evaluation
+
+
 # -- stage D ------------------------------------------------------------------------------------
 def test_stage_d_continues_estimator_and_qos(pipeline: dict[str, Path]) -> None:
     meta = json.loads((pipeline["out_d"] / "training.json").read_text())
@@ -407,7 +421,9 @@ def test_stage_d_continues_estimator_and_qos(pipeline: dict[str, Path]) -> None:
     assert qos_meta["warm_start"] == str(pipeline["out_c"])
     # the multiplier continues from stage C's (which dual ascent moved every episode); stage
     # D's 100 steps finish no 20-episode window, so it ends there too
-    lam_c = json.loads((pipeline["out_c"] / "training.json").read_text())["lambda"]
+    meta_c = json.loads((pipeline["out_c"] / "training.json").read_text())
+    lam_c = meta_c["shipped"]["lambda"]  # that of the shipped (best evaluated) iterate
+    assert meta_c["shipped"]["steps"] == meta_c["best"]["steps"]
     assert lam_c != StageCConfig().env.lam
     assert qos_meta["lambda"] == pytest.approx(lam_c)
     LearnedQosPolicy.load(pipeline["out_d"] / "qos")

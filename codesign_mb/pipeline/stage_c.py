@@ -78,6 +78,7 @@ __all__ = [
     "QosEnvConfig",
     "StageCConfig",
     "evaluate_qos_agent",
+    "feasible_score",
     "train_stage_c",
     "warm_start_multiplier",
 ]
@@ -433,6 +434,12 @@ class StageCConfig:
         With ``warm_start``, start the multiplier where the warm-start run ended (its
         ``training.json`` ``lambda``) instead of at ``env.lam``: the dual variable belongs
         with the policy it was trained with.
+    keep_best, target_success:
+        Ship the best evaluated policy instead of the last iterate (primal-dual iterates
+        oscillate around the constraint): among the evaluations (after each chunk) whose
+        success rate reaches ``target_success``, the one with the lowest mean requested
+        reliability; if none does, the most successful (:func:`feasible_score`). The final
+        evaluation in ``training.json`` is of the shipped policy, on other seeds.
     seed:
         Root seed.
     """
@@ -456,6 +463,8 @@ class StageCConfig:
     eval_episodes: int = 20
     warm_start: str | None = None
     warm_start_lambda: bool = True
+    keep_best: bool = True
+    target_success: float = 0.95
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -465,6 +474,8 @@ class StageCConfig:
             raise ValueError(f"chunk_steps must be >= 1, got {self.chunk_steps}")
         if self.eval_episodes < 0:
             raise ValueError(f"eval_episodes must be >= 0, got {self.eval_episodes}")
+        if not 0.0 <= self.target_success <= 1.0:
+            raise ValueError(f"target_success must be in [0, 1], got {self.target_success}")
 
 
 def make_qos_env(config: StageCConfig, *, estimator_spec: ComponentSpec | None = None) -> Any:
@@ -481,6 +492,21 @@ def make_qos_env(config: StageCConfig, *, estimator_spec: ComponentSpec | None =
         config=config.env,
         features=features,
     )
+
+
+def feasible_score(point: dict[str, Any], target_success: float) -> float | None:
+    """Score of an evaluation for :attr:`StageCConfig.keep_best` (higher is better).
+
+    Feasible evaluations (``eval_success_rate >= target_success``) score ``2 - mean
+    reliability`` (in [1, 2]), the others their success rate (in [0, 1)): any feasible
+    policy beats every infeasible one, and the cheapest feasible one wins.
+    """
+    if "eval_success_rate" not in point:
+        return None
+    success = float(point["eval_success_rate"])
+    if success >= target_success:
+        return 2.0 - float(point["eval_mean_reliability"])
+    return success
 
 
 def evaluate_qos_agent(env: QosAdaptationEnv, model: Any, *, episodes: int, seed: int) -> dict:
@@ -542,6 +568,7 @@ def train_stage_c(
                 state.extra["lambda"] = warm_start_multiplier(source, default=config.env.lam)
         else:
             model = make_sac(env, config.sac, seed=config.seed)
+        (work_dir / "best_model.zip").unlink(missing_ok=True)
     assert state is not None
     state.total_steps = config.total_steps
     lam = float(state.extra.get("lambda", config.env.lam))
@@ -579,7 +606,18 @@ def train_stage_c(
         on_chunk=on_chunk,
         progress=progress,
         description=f"stage {stage.upper()} (SAC QoS policy)",
+        keep_best=(lambda p: feasible_score(p, config.target_success))
+        if config.keep_best and config.eval_episodes
+        else None,
     )
+    best_path = work_dir / "best_model.zip"
+    if config.keep_best and config.eval_episodes and best_path.is_file():
+        model = SAC.load(best_path, env=env, device="cpu")
+        steps = state.extra["best"]["steps"]
+        point = next(p for p in state.curve if p["steps"] == steps)
+        state.extra["shipped"] = {"steps": steps, "lambda": point.get("lambda", callback.lam)}
+    else:
+        state.extra["shipped"] = {"steps": state.steps_done, "lambda": callback.lam}
     final = evaluate_qos_agent(
         eval_env, model, episodes=max(config.eval_episodes, 1), seed=config.seed + 3
     )
@@ -592,9 +630,17 @@ def train_stage_c(
         command=command,
         seed=config.seed,
         final=final,
-        notes="SB3 SAC QoS agent (eq_q_t_pol2); lambda by dual ascent"
-        if d.enabled
-        else "SB3 SAC QoS agent (eq_q_t_pol2); fixed lambda",
+        notes=(
+            "SB3 SAC QoS agent (eq_q_t_pol2); "
+            + ("lambda by dual ascent" if d.enabled else "fixed lambda")
+            + (
+                f"; shipped: the evaluated policy of step {state.extra['shipped']['steps']} "
+                f"(lowest reliability at >= {config.target_success:.0%} evaluation success, "
+                "else the most successful; see curve.json)"
+                if config.keep_best and config.eval_episodes
+                else "; shipped: the last iterate"
+            )
+        ),
     )
     LearnedQosPolicy(model, env.interface, features=env.features).save(
         out_dir,
@@ -610,13 +656,17 @@ def train_stage_c(
 
 
 def warm_start_multiplier(policy_dir: str | Path, *, default: float) -> float:
-    """The multiplier a saved QoS policy's training ended with (``default`` if unrecorded)."""
+    """The multiplier a saved QoS policy was trained with (``default`` if unrecorded).
+
+    That of the shipped iterate (``training.json``'s ``shipped``), else the final one.
+    """
     import json
 
     path = Path(policy_dir) / "training.json"
     if not path.is_file():
         return float(default)
-    return float(json.loads(path.read_text()).get("lambda", default))
+    meta = json.loads(path.read_text())
+    return float((meta.get("shipped") or {}).get("lambda", meta.get("lambda", default)))
 
 
 def _spec_json(spec: ComponentSpec) -> dict[str, Any]:

@@ -203,7 +203,7 @@ def train_sac_in_chunks(
     progress: Progress = no_progress,
     description: str = "training",
     save_buffer: bool = True,
-    keep_best: str | None = None,
+    keep_best: str | Callable[[Mapping[str, Any]], float] | None = None,
 ) -> TrainingState:
     """Run ``model.learn`` chunk by chunk until ``state.total_steps``, checkpointing each chunk.
 
@@ -212,9 +212,10 @@ def train_sac_in_chunks(
     ``state.json`` are written to ``work_dir``. The step count is SB3's ``num_timesteps``, so a
     resumed run continues where the last checkpoint left it.
 
-    With ``keep_best`` (a key of the evaluation, e.g. ``"success_rate"``), the model of the
-    best evaluation so far (ties: the later) is also kept as ``best_model.zip`` and recorded
-    in ``state.extra["best"]`` (SB3's ``EvalCallback`` practice).
+    With ``keep_best`` (a key of the evaluation, e.g. ``"success_rate"``, or a function of
+    the curve point that scores it), the model of the best evaluation so far (ties: the
+    later) is also kept as ``best_model.zip`` and recorded in ``state.extra["best"]``
+    (SB3's ``EvalCallback`` practice).
     """
     if chunk_steps < 1:
         raise ValueError(f"chunk_steps must be >= 1, got {chunk_steps}")
@@ -237,15 +238,27 @@ def train_sac_in_chunks(
         point["wall_time_s"] = round(state.wall_time_s, 2)
         state.curve.append(point)
         _save_model(model, work_dir / "model.zip")
-        if keep_best is not None and keep_best in point:
+        score = _score(keep_best, point)
+        if score is not None:
             best = state.extra.get("best")
-            if best is None or point[keep_best] >= best[keep_best]:
-                state.extra["best"] = {"steps": point["steps"], keep_best: point[keep_best]}
+            key = keep_best if isinstance(keep_best, str) else "score"
+            if best is None or score >= best.get("score", best.get(key, -np.inf)):
+                state.extra["best"] = {"steps": point["steps"], key: score, "score": score}
                 _save_model(model, work_dir / "best_model.zip")
         if save_buffer:
             _save_buffer(model, work_dir / "replay_buffer.pkl")
         write_json(work_dir / "state.json", state.to_json())
     return state
+
+
+def _score(
+    keep_best: str | Callable[[Mapping[str, Any]], float] | None, point: Mapping[str, Any]
+) -> float | None:
+    if keep_best is None:
+        return None
+    if isinstance(keep_best, str):
+        return float(point[keep_best]) if keep_best in point else None
+    return keep_best(point)
 
 
 def write_output(
