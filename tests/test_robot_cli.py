@@ -50,4 +50,5 @@ def test_bench_env_reports_steps_per_second() -> None:
     figures = bench_env(repeats=1, seed=0)
     assert figures["steps_per_s"] > 0 and figures["cpu_steps_per_s"] > 0
     assert figures["substeps_per_step"] == 20
+    assert 0 < figures["physics_fraction"] < 1  # the env adds to the bare physics
     json.dumps(figures)  # JSON-ready

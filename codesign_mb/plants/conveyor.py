@@ -338,6 +338,8 @@ class ConveyorPickPlace(gym.Env):
         # reachable with the gripper pointing down, away from singularities and joint limits.
         self.workspace_low = np.array([0.35, -0.55, BELT_SURFACE_Z + 0.02])
         self.workspace_high = np.array([0.70, 0.55, BELT_SURFACE_Z + 0.34])
+        self._workspace_low_list = self.workspace_low.tolist()
+        self._workspace_high_list = self.workspace_high.tolist()
         self.workspace_radius = 0.72
         self.sim.osc.set_workspace(self.workspace_low, self.workspace_high, self.workspace_radius)
         self._brake_accel = 0.5 * self.sim.osc.gains.max_accel_mps2
@@ -446,10 +448,12 @@ class ConveyorPickPlace(gym.Env):
         x = self.sim.osc.position_reference
         limit = self.config.max_gripper_speed_mps
         margin = self._brake_distance
-        radius = math.hypot(x[0], x[1])
+        x0, x1, x2 = x.tolist()
+        radius = math.hypot(x0, x1)
+        lo0, lo1, lo2 = self._workspace_low_list
+        hi0, hi1, hi2 = self._workspace_high_list
         if (
-            (x - self.workspace_low).min() > margin
-            and (self.workspace_high - x).min() > margin
+            min(x0 - lo0, x1 - lo1, x2 - lo2, hi0 - x0, hi1 - x1, hi2 - x2) > margin
             and self.workspace_radius - radius > margin
         ):  # the usual case: far from every face, only the speed limit applies
             np.clip(velocity, -limit, limit, out=velocity)

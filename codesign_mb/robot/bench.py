@@ -21,12 +21,16 @@ __all__ = ["bench_env"]
 def bench_env(*, repeats: int = 5, seed: int = 0, episodes: int = 1) -> dict[str, Any]:
     """Time ``env.step`` over ``repeats`` runs of ``episodes`` scripted episodes each.
 
-    Returns a JSON-ready dict: ``steps_per_s`` (wall clock, median over repeats),
+    Each timed episode is paired with a replay of its own actuator commands by bare
+    ``mj_step`` calls, timed right after it (the same trajectory and contacts: MuJoCo is
+    deterministic): the ceiling without the controller and the env, measured under the same
+    load. Returns a JSON-ready dict: ``steps_per_s`` (wall clock, median over repeats),
     ``steps_per_s_min``, ``steps_per_s_max``, the per-repeat figures, ``cpu_steps_per_s``
-    (the same with the thread's CPU time, less sensitive to other processes on a shared
-    machine), ``physics_only_steps_per_s`` and ``physics_only_cpu_steps_per_s`` (the same
-    episode's actuator commands replayed with bare ``mj_step`` calls: the ceiling without the
-    controller and the env) and the load average.
+    (the thread's CPU time, less sensitive to other processes on a shared machine),
+    ``physics_only_steps_per_s`` and ``physics_only_cpu_steps_per_s`` (medians of the
+    replays), ``physics_fraction`` (median over repeats of env rate / replay rate: the
+    share of a step spent in the physics, a machine-independent figure) and the load
+    average.
     """
     import mujoco
 
@@ -40,17 +44,27 @@ def bench_env(*, repeats: int = 5, seed: int = 0, episodes: int = 1) -> dict[str
     config = ConveyorConfig()
     env = ConveyorPickPlace(config)
     policy = ScriptedPickController(config)
+    sim = env.sim
+    m, d = sim.model, sim.data
+    bare_step = sim._mj_step2  # the second half of each physics step, after the torques
     env.reset(seed=seed)
     env.step(np.zeros(4))  # compile the inner loop (numba) before timing
-    rates: list[float] = []
-    cpu_rates: list[float] = []
-    for r in range(int(repeats)):
-        elapsed, cpu, steps = 0.0, 0.0, 0
-        for e in range(int(episodes)):
-            episode_seed = seed + r * int(episodes) + e
+
+    def episode(episode_seed: int, record: list[np.ndarray] | None) -> tuple[float, float, int]:
+        # One scripted episode; returns the wall and CPU time inside env.step and its steps.
+        # With record, the Python loop runs (same torques) and each substep's ctrl is kept.
+        if record is not None:
+            sim.compiled = False
+
+            def recording_step() -> None:
+                record.append(d.ctrl.copy())
+                bare_step()
+
+            sim._mj_step2 = recording_step
+        try:
             obs, _ = env.reset(seed=episode_seed)
             policy.reset(seed=episode_seed)
-            done = False
+            elapsed, cpu, steps, done = 0.0, 0.0, 0, False
             while not done:
                 action = policy.act(obs)
                 c0, t0 = time.thread_time(), time.perf_counter()
@@ -59,42 +73,45 @@ def bench_env(*, repeats: int = 5, seed: int = 0, episodes: int = 1) -> dict[str
                 cpu += time.thread_time() - c0
                 steps += 1
                 done = terminated or truncated
+        finally:
+            sim._mj_step2, sim.compiled = bare_step, True
+        return elapsed, cpu, steps
+
+    def replay(episode_seed: int, controls: np.ndarray) -> tuple[float, float]:
+        env.reset(seed=episode_seed)
+        ctrl = d.ctrl
+        c0, t0 = time.thread_time(), time.perf_counter()
+        for u in controls:
+            ctrl[:] = u
+            mujoco.mj_step(m, d)
+        return time.perf_counter() - t0, time.thread_time() - c0
+
+    rates: list[float] = []
+    cpu_rates: list[float] = []
+    physics_rates: list[float] = []
+    physics_cpu_rates: list[float] = []
+    for r in range(int(repeats)):
+        seeds = [seed + r * int(episodes) + e for e in range(int(episodes))]
+        recorded = []
+        for s in seeds:
+            controls: list[np.ndarray] = []
+            episode(s, controls)
+            recorded.append(np.array(controls))
+        elapsed = cpu = 0.0
+        steps = 0
+        for s in seeds:
+            e_wall, e_cpu, e_steps = episode(s, None)
+            elapsed, cpu, steps = elapsed + e_wall, cpu + e_cpu, steps + e_steps
+        p_wall = p_cpu = 0.0
+        for s, controls in zip(seeds, recorded, strict=True):
+            w, c = replay(s, controls)
+            p_wall, p_cpu = p_wall + w, p_cpu + c
+        n_replayed = sum(len(c) for c in recorded) / config.n_substeps
         rates.append(steps / elapsed)
         cpu_rates.append(steps / cpu)
-
-    # Physics-only reference: replay the actuator commands of one scripted episode with
-    # bare mj_step calls (the same trajectory, contacts included: MuJoCo is deterministic).
-    sim = env.sim
-    m, d = sim.model, sim.data
-    recorded: list[np.ndarray] = []
-    bare_step = sim._mj_step2  # the second half of each physics step, after the torques
-
-    def recording_step() -> None:
-        recorded.append(d.ctrl.copy())
-        bare_step()
-
-    obs, _ = env.reset(seed=seed)
-    policy.reset(seed=seed)
-    sim._mj_step2 = recording_step
-    sim.compiled = False  # the Python loop calls _mj_step2: same torques, recorded
-    try:
-        done = False
-        while not done:
-            obs, _, terminated, truncated, _ = env.step(policy.act(obs))
-            done = terminated or truncated
-    finally:
-        sim._mj_step2 = bare_step
-        sim.compiled = True
-    controls = np.array(recorded)
-    env.reset(seed=seed)
-    ctrl = d.ctrl
-    c0, t0 = time.thread_time(), time.perf_counter()
-    for u in controls:
-        ctrl[:] = u
-        mujoco.mj_step(m, d)
-    wall, cpu = time.perf_counter() - t0, time.thread_time() - c0
-    n_steps = len(controls) / config.n_substeps
-    physics, physics_cpu = n_steps / wall, n_steps / cpu
+        physics_rates.append(n_replayed / p_wall)
+        physics_cpu_rates.append(n_replayed / p_cpu)
+    fractions = [e / p for e, p in zip(rates, physics_rates, strict=True)]
     env.close()
     return {
         "name": "env",
@@ -107,8 +124,11 @@ def bench_env(*, repeats: int = 5, seed: int = 0, episodes: int = 1) -> dict[str
         "steps_per_repeat": int(episodes) * config.horizon,
         "substeps_per_step": config.n_substeps,
         "cpu_steps_per_s": float(np.median(cpu_rates)),
-        "physics_only_steps_per_s": float(physics),
-        "physics_only_cpu_steps_per_s": float(physics_cpu),
+        "physics_only_steps_per_s": float(np.median(physics_rates)),
+        "physics_only_cpu_steps_per_s": float(np.median(physics_cpu_rates)),
+        "physics_only_steps_per_s_repeats": [float(x) for x in physics_rates],
+        "physics_fraction": float(np.median(fractions)),
+        "physics_fraction_repeats": [round(float(x), 3) for x in fractions],
         "osc_model_period": config.osc_model_period,
         "seed": int(seed),
         "load_average_1min": float(os.getloadavg()[0]) if hasattr(os, "getloadavg") else None,
