@@ -41,8 +41,8 @@ defining:
     ``DEFAULT_PIPELINES`` if the module defines it, else all.
 
 Built in: ``"linear"`` (:mod:`codesign_mb.evaluation.sweep_linear`, LQG over a Bernoulli
-link, milliseconds per trial). ``"conveyor"`` is reserved for the MuJoCo pick-and-place
-pipelines (module ``codesign_mb.pipeline.sweep``, written by the pipeline parts).
+link, milliseconds per trial) and ``"conveyor"`` (:mod:`codesign_mb.pipeline.sweep`: the
+MuJoCo pick-and-place with the pipelines of ``codesign table``, seconds per trial).
 
 Ray Tune
 --------
@@ -366,7 +366,7 @@ def _iter_serial(pending: Pending) -> Iterator[tuple[str, dict[str, Scalar]]]:
         yield key, execute_trial(trial, seed)
 
 
-def _quiet_on_interrupt() -> None:
+def _init_worker() -> None:
     """Worker initializer: one BLAS/OpenMP thread per worker (``single_threaded_worker``),
     and Ctrl-C (sent to the whole process group) ends a worker quietly; the driver reports
     the interruption once."""
@@ -390,7 +390,7 @@ def _iter_local(pending: Pending, workers: int) -> Iterator[tuple[str, dict[str,
     pool = ProcessPoolExecutor(
         max_workers=workers,
         mp_context=multiprocessing.get_context("spawn"),
-        initializer=_quiet_on_interrupt,
+        initializer=_init_worker,
     )
     try:
         futures = {pool.submit(execute_trial, trial, seed): key for key, trial, seed in pending}
