@@ -4,6 +4,8 @@
   Jacobians, mass matrix, gravity/Coriolis, inverse kinematics) of ``models/panda``.
 - :mod:`~codesign_mb.robot.osc`: :class:`OperationalSpaceController`, the 500 Hz
   operational-space inner loop turning a Cartesian gripper velocity into joint torques.
+- :mod:`~codesign_mb.robot.native`: the inner loop's law, reference and substeps compiled
+  with numba, calling MuJoCo's ``mj_step1``/``mj_step2`` directly (the plant's hot path).
 - :mod:`~codesign_mb.robot.scene`: :func:`build_scene`, the MuJoCo conveyor scene
   (``models/scene_conveyor.xml`` + the same URDF) with the graspable object.
 - :mod:`~codesign_mb.robot.simulator`: :class:`ConveyorSimulator`, physics + inner loop, one
