@@ -4,8 +4,9 @@ The plant's hot path is 20 physics substeps per control step with the affine law
 ``tau = G s + h`` (:mod:`codesign_mb.robot.osc`) between MuJoCo's ``mj_step1`` and
 ``mj_step2``. Written in Python, each substep costs about ten numpy and binding calls, as
 much as the physics itself. Here numba compiles the law and the substep loop; the loop calls
-``mj_step1`` / ``mj_step2`` of the ``libmujoco`` the Python bindings loaded (ctypes, on the
-``MjModel`` / ``MjData`` addresses), so a block of substeps is one call from Python.
+``mj_step1`` / ``mj_step2`` of the ``libmujoco`` the Python bindings loaded (by symbol, on
+the ``MjModel`` / ``MjData`` addresses), so a block of substeps is one call from Python; all
+of it is cached on disk by numba (the first call in a process still costs about 0.5 s).
 
 :func:`affine_torque` is the single implementation of the law: the Python reference path
 (:meth:`~codesign_mb.robot.osc.OperationalSpaceController.torque`) calls it too, so both
@@ -21,7 +22,7 @@ import os
 
 import mujoco
 import numpy as np
-from numba import njit
+from numba import njit, types
 
 __all__ = ["affine_torque", "operational_space_map", "plan_reference", "run_substeps"]
 
@@ -172,8 +173,10 @@ def operational_space_map(J, M, P, Q, kd, iv, damping, G):
     G[:, :] = JtL @ P + NtM @ Q
 
 
-def _load_step_functions():
-    """``mj_step1`` and ``mj_step2`` of the bindings' own ``libmujoco`` (or ``None``)."""
+def _load_mujoco_library() -> bool:
+    """Make the bindings' own ``libmujoco`` symbols visible to compiled code."""
+    import llvmlite.binding as llvm
+
     folder = os.path.dirname(mujoco.__file__)
     candidates = sorted(
         glob.glob(os.path.join(folder, "libmujoco.so*"))
@@ -182,27 +185,21 @@ def _load_step_functions():
     )
     for path in candidates:
         try:
-            lib = ctypes.CDLL(path)
-        except OSError:
+            if ctypes.CDLL(path).mj_version() != mujoco.mj_version():
+                continue
+            llvm.load_library_permanently(path)
+        except (OSError, RuntimeError):
             continue
-        if lib.mj_version() != mujoco.mj_version():
-            continue
-        functions = []
-        for name in ("mj_step1", "mj_step2"):
-            fn = getattr(lib, name)
-            fn.argtypes = [ctypes.c_size_t, ctypes.c_size_t]  # mjModel*, mjData*
-            fn.restype = None
-            functions.append(fn)
-        return tuple(functions)
-    return None
+        return True
+    return False
 
 
-_STEP_FUNCTIONS = _load_step_functions()
+if _load_mujoco_library():
+    # mj_step1(const mjModel*, mjData*), mj_step2(...): resolved by name, so cacheable.
+    _mj_step1 = types.ExternalFunction("mj_step1", types.void(types.uintp, types.uintp))
+    _mj_step2 = types.ExternalFunction("mj_step2", types.void(types.uintp, types.uintp))
 
-if _STEP_FUNCTIONS is not None:
-    _mj_step1, _mj_step2 = _STEP_FUNCTIONS
-
-    @njit
+    @njit(cache=True)
     def _run_substeps(
         model, data, G, refs, start, stop, sensed, rot, pos, q, v, bias, limit, clip, ctrl
     ):
