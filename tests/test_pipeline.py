@@ -474,3 +474,15 @@ def test_stage_d_rejects_features_the_stage_c_policy_lacks(
     )
     with pytest.raises(ValueError, match="trained with None"):
         train_stage_d(config, out_dir=tmp_path / "out", work_dir=tmp_path / "work")
+
+
+def test_shipped_stage_c_config_parses() -> None:
+    """configs/stage_c_model_based.toml reproduces the shipped stage_c_mpc run's settings."""
+    from codesign_mb.config import from_mapping, load_config_file
+
+    root = Path(__file__).resolve().parents[1]
+    config = from_mapping(
+        StageCConfig, load_config_file(root / "configs" / "stage_c_model_based.toml")
+    )
+    assert (config.controller.kind, config.estimator.kind) == ("mpc", "predictor")
+    assert not config.keep_best and not config.env.terminal_horizon

@@ -10,9 +10,9 @@ estimator" into a Gymnasium env whose agent is the QoS policy. One agent step is
 * the packet ``x_t`` is sent with it, the robot runs ``u_t = controller(estimator(y_t,
   zeta_t))`` (``eq_c_pol2``) and the plant steps;
 * reward ``-(C(q_t) + lambda (L(x_t) - J_max / T))`` (``eq_q_t_pol2``);
-* the plant's horizon ``T`` *terminates* the agent's episode: ``J`` is scored at ``T`` and
-  nothing follows, so the critic must not bootstrap past it as it would after a time limit
-  (the failure loss is paid exactly on that step).
+* the plant's horizon ``T`` *terminates* the agent's episode (``terminal_horizon``): ``J``
+  is scored at ``T`` and nothing follows, so the critic must not bootstrap past it as it
+  would after a time limit (the failure loss is paid exactly on that step).
 
 The controller/estimator pair is any :class:`~codesign_mb.control.Controller` and
 :class:`~codesign_mb.estimation.Estimator`, given by configuration
@@ -107,6 +107,10 @@ class QosEnvConfig:
         tolerated failure rate).
     lam:
         ``lambda``: fixed, or the initial value under dual ascent.
+    terminal_horizon:
+        The plant's horizon ends the agent's episode as a termination (``J`` is scored at
+        ``T``; the critic does not bootstrap past it); ``False`` reports it as a time limit
+        (truncation), as the trainer did before (``checkpoints/stage_c_mpc`` was trained so).
     """
 
     latency_steps: int = 1
@@ -117,6 +121,7 @@ class QosEnvConfig:
     loss: str = "failure"
     j_max: float = 0.02
     lam: float = 50.0
+    terminal_horizon: bool = True
 
     def __post_init__(self) -> None:
         if self.loss not in LOSSES:
@@ -284,8 +289,9 @@ class QosAdaptationEnv(gym.Env):
                 "mean_reliability": s["reliability"] / s["steps"],
                 "steps": s["steps"],
             }
-        # The horizon ends the finite-horizon problem (J is scored at T): a termination.
-        return next_obs, reward, done, False, info
+        if c.terminal_horizon:  # the horizon ends the finite-horizon problem (J is scored at T)
+            return next_obs, reward, done, False, info
+        return next_obs, reward, bool(terminated), bool(truncated), info
 
     def _loss(self, info: dict[str, Any], done: bool) -> float:
         kind = self.config.loss
