@@ -459,16 +459,26 @@ class ConveyorPickPlace(gym.Env):
             np.clip(velocity, -limit, limit, out=velocity)
             return
 
-        def cap(distance: NDArray[np.float64] | float) -> NDArray[np.float64] | float:
-            return a * (np.sqrt(T * T + 2.0 * np.maximum(distance, 0.0) / a) - T)
+        def cap(distance: float) -> float:
+            return a * (math.sqrt(T * T + 2.0 * max(distance, 0.0) / a) - T)
 
-        np.clip(velocity, -cap(x - self.workspace_low), cap(self.workspace_high - x), out=velocity)
+        v = [
+            min(max(vi, -cap(xi - lo)), cap(hi - xi))
+            for vi, xi, lo, hi in zip(
+                velocity.tolist(),
+                (x0, x1, x2),
+                self._workspace_low_list,
+                self._workspace_high_list,
+                strict=True,
+            )
+        ]
         if radius > 0:
-            outward = (velocity[0] * x[0] + velocity[1] * x[1]) / radius
-            allowed = float(cap(self.workspace_radius - radius))
+            outward = (v[0] * x0 + v[1] * x1) / radius
+            allowed = cap(self.workspace_radius - radius)
             if outward > allowed:
-                velocity[:2] -= (outward - allowed) * x[:2] / radius
-        np.clip(velocity, -limit, limit, out=velocity)
+                v[0] -= (outward - allowed) * x0 / radius
+                v[1] -= (outward - allowed) * x1 / radius
+        velocity[:] = [min(max(vi, -limit), limit) for vi in v]
 
     def _observation(self) -> NDArray[np.float64]:
         cfg, sim, rng = self.config, self.sim, self.np_random

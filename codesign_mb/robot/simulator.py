@@ -105,6 +105,7 @@ class ConveyorSimulator:
             addresses=(self.model._address, self.data._address),
         )
         self.compiled = bool(compiled)
+        self._bad_qacc = self.data.warning[mujoco.mjtWarning.mjWARN_BADQACC]  # a live view
         self._left_geoms = frozenset(sc.left_finger_geoms)
         self._right_geoms = frozenset(sc.right_finger_geoms)
         self._tcp_pos = np.zeros(3)
@@ -177,7 +178,7 @@ class ConveyorSimulator:
             clip=False,
             sensed=self._sensed if self.compiled else replace(self._sensed, addresses=None),
         )
-        if d.warning[mujoco.mjtWarning.mjWARN_BADQACC].number:
+        if self._bad_qacc.number:
             raise RuntimeError(
                 "the simulation diverged (MuJoCo reported a bad acceleration); reset the env"
             )
