@@ -184,7 +184,6 @@ class OperationalSpaceController:
         # (row-major) and position, a constant 1 that carries the constant term, the
         # position reference x_r and the reference term r = K_d xdot_r + xddot_r
         # (native.affine_torque evaluates it without stacking s).
-        self._nv = nv
         self._iR = slice(0, 9)
         self._ix = slice(9, 12)
         self._iq = slice(19, 19 + nv)
