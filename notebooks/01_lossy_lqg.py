@@ -44,14 +44,14 @@ import numpy as np
 import pandas as pd
 
 from codesign_mb.adaptation.base import StaticQos
-from codesign_mb.control.lqr import lqg, lqg_average_cost
+from codesign_mb.rollout.compose import lqg, lqg_average_cost
 from codesign_mb.estimation.kalman import (
     IntermittentKalmanFilter,
     critical_arrival_bounds,
     expected_covariance_bounds,
     intermittent_riccati,
 )
-from codesign_mb.evaluation.rollout import rollout
+from codesign_mb.rollout import rollout
 from codesign_mb.network import BernoulliLink, LinkObservationWrapper
 from codesign_mb.plants.linear import LinearPlantEnv, inverted_pendulum, scalar_unstable
 

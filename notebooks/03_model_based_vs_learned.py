@@ -34,7 +34,7 @@
 # (a gripper tracking an object on a belt, LQG over a Bernoulli link; milliseconds per
 # trial), writes it in the same table layout, and the rest of the notebook reads it exactly
 # as it would read the robot's results. The column layout of every table is documented in
-# `codesign_mb.evaluation.report`.
+# `codesign_mb.studies.report`.
 
 # %%
 import json
@@ -48,15 +48,15 @@ import numpy as np
 import pandas as pd
 from IPython.display import Image, Markdown, display
 
-from codesign_mb.evaluation.report import (
+from codesign_mb.studies.report import (
     ReportConfig,
     build_report,
     collect,
     labels_of,
     success_summary,
 )
-from codesign_mb.evaluation.results import ResultsDir, write_results
-from codesign_mb.evaluation.sweep import SweepConfig, run_sweep
+from codesign_mb.core.results import ResultsDir, write_results
+from codesign_mb.studies.sweep import SweepConfig, run_sweep
 
 SMOKE = os.environ.get("CODESIGN_SMOKE") == "1"
 SEEDS = 3 if SMOKE else 20  # replicates per point of the stand-in experiment

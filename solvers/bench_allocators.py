@@ -1,6 +1,6 @@
 """Per-tick allocation time (median, p99) of the RU allocators at 6, 12, 24, 48 stations, as JSON.
 
-Thin script over :func:`codesign_mb.wifi.bench.bench_allocators` (= ``codesign bench allocators``).
+Thin script over :func:`codesign_mb.bench.allocators.bench_allocators` (= ``codesign bench allocators``).
 """
 
 from __future__ import annotations
@@ -8,7 +8,7 @@ from __future__ import annotations
 import argparse
 import json
 
-from codesign_mb.wifi.bench import bench_allocators
+from codesign_mb.bench.allocators import bench_allocators
 
 
 def main() -> None:

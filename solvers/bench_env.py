@@ -1,6 +1,6 @@
 """Conveyor env control steps per second (20 physics substeps + Pinocchio OSC each), as JSON.
 
-Thin script over :func:`codesign_mb.robot.bench.bench_env` (= ``codesign bench env``).
+Thin script over :func:`codesign_mb.bench.env.bench_env` (= ``codesign bench env``).
 Usage: ``python solvers/bench_env.py [--repeats N] [--seed S]``
 """
 
@@ -9,7 +9,7 @@ from __future__ import annotations
 import argparse
 import json
 
-from codesign_mb.robot.bench import bench_env
+from codesign_mb.bench.env import bench_env
 
 
 def main() -> None:

@@ -8,7 +8,7 @@ from __future__ import annotations
 import argparse
 import json
 
-from codesign_mb.control.bench import bench_mpc
+from codesign_mb.bench.mpc import bench_mpc
 
 
 def main() -> None:

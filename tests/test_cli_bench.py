@@ -78,7 +78,7 @@ def test_bench_config_file(app: typer.Typer, tmp_path: Any) -> None:
 
 def test_registry_points_at_the_agreed_functions() -> None:
     assert bench_cli.BENCHMARKS == {
-        "env": "codesign_mb.robot.bench:bench_env",
-        "mpc": "codesign_mb.control.bench:bench_mpc",
-        "allocators": "codesign_mb.wifi.bench:bench_allocators",
+        "env": "codesign_mb.bench.env:bench_env",
+        "mpc": "codesign_mb.bench.mpc:bench_mpc",
+        "allocators": "codesign_mb.bench.allocators:bench_allocators",
     }

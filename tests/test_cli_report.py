@@ -12,9 +12,9 @@ import typer
 from typer.testing import CliRunner
 
 from codesign_mb.cli import report as report_cli
-from codesign_mb.evaluation.report import ReportConfig, build_report, success_summary
-from codesign_mb.evaluation.results import ResultsDir, write_results
-from codesign_mb.evaluation.sweep import SweepConfig, run_sweep
+from codesign_mb.core.results import ResultsDir, write_results
+from codesign_mb.studies.report import ReportConfig, build_report, success_summary
+from codesign_mb.studies.sweep import SweepConfig, run_sweep
 
 
 def _episodes(rng: np.random.Generator, n: int, p: float, q: float) -> pd.DataFrame:

@@ -13,11 +13,10 @@ from gymnasium.utils.env_checker import check_env
 
 import codesign_mb.plants  # noqa: F401  (registers the gym id)
 from codesign_mb.adaptation.base import StaticQos
-from codesign_mb.config import from_mapping
 from codesign_mb.control.base import Controller
 from codesign_mb.control.scripted import ScriptedPickController
+from codesign_mb.core.config import from_mapping
 from codesign_mb.estimation.base import PassThroughEstimator
-from codesign_mb.evaluation.rollout import rollout
 from codesign_mb.network import BernoulliLink, LinkObservationWrapper, NetworkedPlant
 from codesign_mb.plants.conveyor import (
     ConveyorConfig,
@@ -25,6 +24,7 @@ from codesign_mb.plants.conveyor import (
     belt_speed_schedule,
     observation_layout,
 )
+from codesign_mb.rollout import rollout
 
 GYM_ID = "codesign_mb/ConveyorPickPlace-v0"
 

@@ -262,7 +262,7 @@ def test_cli_evaluate_config_file_and_errors(tmp_path) -> None:
 
 
 def test_fig_cn_tiny_grid_and_plot(tmp_path) -> None:
-    from codesign_mb.evaluation.figures_cn import FigCnConfig, plot_fig_cn, run_fig_cn
+    from codesign_mb.studies.fig_cn import FigCnConfig, plot_fig_cn, run_fig_cn
 
     cfg = FigCnConfig(
         trials=1,

@@ -21,9 +21,8 @@ from typer.testing import CliRunner
 
 from codesign_mb.adaptation.base import StaticQos
 from codesign_mb.cli.demo import LqgDemoConfig, register, run_lqg_demo
-from codesign_mb.control.lqr import LqrController, lqg, lqg_average_cost
+from codesign_mb.control.lqr import LqrController
 from codesign_mb.estimation.kalman import intermittent_riccati, steady_state_covariance
-from codesign_mb.evaluation.rollout import rollout
 from codesign_mb.network import BernoulliLink, LinkObservationWrapper
 from codesign_mb.plants.linear import (
     LINEAR_PLANTS,
@@ -31,6 +30,8 @@ from codesign_mb.plants.linear import (
     make_linear_plant,
     scalar_unstable,
 )
+from codesign_mb.rollout import rollout
+from codesign_mb.rollout.compose import lqg, lqg_average_cost
 
 Z99 = 2.5758293035489004  # two-sided 99 % normal quantile
 

@@ -9,10 +9,10 @@ from codesign_mb.adaptation.base import StaticQos
 from codesign_mb.control.mpc import MpcController, Phase
 from codesign_mb.estimation.base import PassThroughEstimator
 from codesign_mb.evaluation.evaluate import component, evaluate, summarize
-from codesign_mb.evaluation.rollout import rollout
 from codesign_mb.network.link import BernoulliLink
 from codesign_mb.network.wrapper import LinkObservationWrapper
 from codesign_mb.plants.conveyor import ConveyorConfig, ConveyorPickPlace
+from codesign_mb.rollout import rollout
 
 
 @pytest.mark.parametrize("speed", [0.2, 0.6])
@@ -76,7 +76,7 @@ def test_predictor_target_at_fast_belt_and_four_steps_of_delay() -> None:
 
 @pytest.mark.slow
 def test_bench_mpc_on_recorded_problems() -> None:
-    from codesign_mb.control.bench import bench_mpc
+    from codesign_mb.bench.mpc import bench_mpc
 
     result = bench_mpc(repeats=1, seed=0, solvers=("qpoases", "daqp"), episodes_per_speed=1)
     assert result["solver"] == "qpoases" and result["problems"] == 200

@@ -1,6 +1,6 @@
 """The model-free pipeline (stages A-D, Table I) on the kinematic toy plant: smoke and parity.
 
-Every stage trains for a few hundred steps on :class:`~codesign_mb.pipeline.toy.ToyConveyor`
+Every stage trains for a few hundred steps on :class:`~codesign_mb.plants.toy.ToyConveyor`
 (microseconds per step), chained as the real pipeline is: A's SAC drives B's rollouts, B's
 MLP is C's estimator, D continues both. The conveyor runs are the shipped checkpoints.
 """
@@ -17,13 +17,20 @@ from gymnasium.utils.env_checker import check_env
 
 from codesign_mb.adaptation.learned import ElapsedTimeFeature, LearnedQosPolicy, QosInterface
 from codesign_mb.control.sac import SacController
+from codesign_mb.control.scripted import ToyPickController
+from codesign_mb.core.registry import (
+    ComponentSpec,
+    PlantSpec,
+    build,
+    make_plant,
+    resolve_checkpoint,
+)
 from codesign_mb.estimation.base import PassThroughEstimator
 from codesign_mb.estimation.learned import MlpEstimator, load_estimator
 from codesign_mb.network.qos import QosRequest
-from codesign_mb.pipeline.components import ComponentSpec, build, resolve_checkpoint
-from codesign_mb.pipeline.plants import PlantSpec, make_plant
-from codesign_mb.pipeline.stage_a import StageAConfig, train_stage_a
-from codesign_mb.pipeline.stage_b import (
+from codesign_mb.plants.toy import ToyConveyor
+from codesign_mb.stages.stage_a import StageAConfig, train_stage_a
+from codesign_mb.stages.stage_b import (
     DelayDistribution,
     EstimatorTraining,
     RandomQos,
@@ -34,7 +41,7 @@ from codesign_mb.pipeline.stage_b import (
     new_estimator,
     train_stage_b,
 )
-from codesign_mb.pipeline.stage_c import (
+from codesign_mb.stages.stage_c import (
     DualAscent,
     DualAscentCallback,
     QosAdaptationEnv,
@@ -43,9 +50,8 @@ from codesign_mb.pipeline.stage_c import (
     feasible_score,
     train_stage_c,
 )
-from codesign_mb.pipeline.stage_d import StageDConfig, train_stage_d
-from codesign_mb.pipeline.toy import ToyConveyor, ToyPickController
-from codesign_mb.pipeline.training import SacSpec, make_sac
+from codesign_mb.stages.stage_d import StageDConfig, train_stage_d
+from codesign_mb.stages.training import SacSpec, make_sac
 
 TOY = PlantSpec("toy", {"horizon": 40})
 TINY_SAC = SacSpec(net_arch=(32, 32), buffer_size=5_000, batch_size=32, learning_starts=50)
@@ -446,7 +452,7 @@ def test_toy_plant_checker_and_scripted_pick() -> None:
 
 
 def test_configs_reject_bad_values() -> None:
-    from codesign_mb.config import from_mapping
+    from codesign_mb.core.config import from_mapping
 
     with pytest.raises(ValueError, match=r"plant\.name"):
         PlantSpec("nope")
@@ -478,7 +484,7 @@ def test_stage_d_rejects_features_the_stage_c_policy_lacks(
 
 def test_shipped_stage_c_config_parses() -> None:
     """configs/stage_c_model_based.toml reproduces the shipped stage_c_mpc run's settings."""
-    from codesign_mb.config import from_mapping, load_config_file
+    from codesign_mb.core.config import from_mapping, load_config_file
 
     root = Path(__file__).resolve().parents[1]
     config = from_mapping(

@@ -15,12 +15,11 @@ from codesign_mb.adaptation.learned import (
     make_features,
 )
 from codesign_mb.adaptation.rules import CovarianceTriggeredQos, PredictorReplica
+from codesign_mb.core.registry import ComponentSpec, PlantSpec, make_plant
 from codesign_mb.network import BernoulliLink
 from codesign_mb.network.qos import QosRequest
-from codesign_mb.pipeline.components import ComponentSpec
-from codesign_mb.pipeline.plants import PlantSpec, make_plant
-from codesign_mb.pipeline.stage_c import DualAscent, StageCConfig, make_qos_env, train_stage_c
-from codesign_mb.pipeline.training import SacSpec
+from codesign_mb.stages.stage_c import DualAscent, StageCConfig, make_qos_env, train_stage_c
+from codesign_mb.stages.training import SacSpec
 
 LAYOUT = {"object_pos": slice(0, 3), "object_vel": slice(3, 6)}
 PREDICTOR = {"prior_velocity": (0.0, 0.2, 0.0), "accel_std": 0.5}

@@ -9,7 +9,7 @@ from pathlib import Path
 import pandas as pd
 import pytest
 
-from codesign_mb.evaluation.results import ResultsDir, atomic_write, write_results
+from codesign_mb.core.results import ResultsDir, atomic_write, write_results
 
 
 @dataclass(frozen=True)

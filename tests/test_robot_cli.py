@@ -45,7 +45,7 @@ def test_render_rejects_bad_options(tmp_path: Path) -> None:
 
 
 def test_bench_env_reports_steps_per_second() -> None:
-    from codesign_mb.robot.bench import bench_env
+    from codesign_mb.bench.env import bench_env
 
     figures = bench_env(repeats=1, seed=0)
     assert figures["steps_per_s"] > 0 and figures["cpu_steps_per_s"] > 0

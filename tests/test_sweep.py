@@ -16,13 +16,13 @@ import typer
 from typer.testing import CliRunner
 
 from codesign_mb.cli import sweep as sweep_cli
-from codesign_mb.evaluation.results import ResultsDir
-from codesign_mb.evaluation.sweep import (
+from codesign_mb.core.results import ResultsDir
+from codesign_mb.core.seeds import episode_seeds
+from codesign_mb.studies.sweep import (
     GRID_COLUMNS,
     SweepConfig,
     plan_sweep,
     run_sweep,
-    trial_seeds,
 )
 
 # --- a counting scenario: this module is itself a scenario (run_trial, Params, PIPELINES) ---
@@ -101,7 +101,7 @@ def test_table_layout_and_seeds(tmp_path: Path) -> None:
     table = ResultsDir(tmp_path / "out").table("sweep")
     assert list(table.columns) == [*GRID_COLUMNS, "value"]
     assert table["pipeline"].tolist()[:12] == ["b"] * 12  # grid order as configured
-    seeds = trial_seeds(0, 3)
+    seeds = episode_seeds(0, 3)
     assert len(set(seeds)) == 3
     # Common random numbers: replicate r has the same seed at every grid point.
     assert (table["seed"] == table["replicate"].map(dict(enumerate(seeds)))).all()
@@ -213,7 +213,7 @@ def test_local_and_ray_backends_identical(tmp_path: Path, ray_local: None) -> No
 def test_tune_hyperparameters(tmp_path: Path, ray_local: None) -> None:
     from ray import tune
 
-    from codesign_mb.evaluation.sweep import tune_hyperparameters
+    from codesign_mb.studies.sweep import tune_hyperparameters
 
     def trainable(config: dict[str, Any]) -> dict[str, float]:
         return {"loss": (config["lr"] - 0.01) ** 2, "seed_seen": float(config["seed"])}

@@ -13,12 +13,12 @@ import typer
 from typer.testing import CliRunner
 
 from codesign_mb.cli import sweep as sweep_cli
-from codesign_mb.evaluation.results import ResultsDir
-from codesign_mb.evaluation.sweep import GRID_COLUMNS, SweepConfig, plan_sweep, run_sweep
+from codesign_mb.core.results import ResultsDir
 from codesign_mb.network.link import BernoulliLink
 from codesign_mb.network.qos import QosRequest
-from codesign_mb.pipeline import sweep as conveyor
-from codesign_mb.pipeline.table import (
+from codesign_mb.stages import sweep as conveyor
+from codesign_mb.studies.sweep import GRID_COLUMNS, SweepConfig, plan_sweep, run_sweep
+from codesign_mb.studies.table import (
     MPC_RULE_THRESHOLD_M,
     all_rows,
     model_based_rows,
@@ -135,7 +135,7 @@ def test_unknown_params_rejected() -> None:
 def no_checkpoints(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[Path]:
     """No checkpoint anywhere: an empty working directory and an empty models folder."""
     monkeypatch.chdir(tmp_path)
-    monkeypatch.setattr("codesign_mb.pipeline.components.models_dir", lambda: tmp_path)
+    monkeypatch.setattr("codesign_mb.core.registry.models_dir", lambda: tmp_path)
     yield tmp_path
 
 

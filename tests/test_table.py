@@ -12,8 +12,8 @@ import pytest
 from typer.testing import CliRunner
 
 from codesign_mb.cli import app
-from codesign_mb.pipeline.components import ComponentSpec
-from codesign_mb.pipeline.table import (
+from codesign_mb.core.registry import ComponentSpec
+from codesign_mb.studies.table import (
     CPU_COLUMNS,
     PLANT_PRESETS,
     TableConfig,

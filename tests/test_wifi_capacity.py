@@ -6,14 +6,14 @@ import numpy as np
 import pytest
 
 from codesign_mb.adaptation.rules import CovarianceTriggeredQos
-from codesign_mb.wifi import WifiConfig, generate_trace
-from codesign_mb.wifi.capacity import (
+from codesign_mb.studies.fig_wifi import (
     CHANNEL_PRESETS,
     CapacityConfig,
     capacity_table,
     plot_capacity,
     run_capacity,
 )
+from codesign_mb.wifi import WifiConfig, generate_trace
 from codesign_mb.wifi.offline import airtime_prices
 
 LAYOUT = {"object_pos": slice(0, 3), "object_vel": slice(3, 6)}

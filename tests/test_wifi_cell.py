@@ -11,7 +11,8 @@ import pytest
 from codesign_mb.adaptation.base import StaticQos
 from codesign_mb.estimation.base import PassThroughEstimator
 from codesign_mb.network import Link, LinkObservationWrapper, QosRequest
-from codesign_mb.wifi import ChannelConfig, SharedChannel, WifiConfig, WifiLink, rollout_shared
+from codesign_mb.rollout import rollout_shared
+from codesign_mb.wifi import ChannelConfig, SharedChannel, WifiConfig, WifiLink
 from codesign_mb.wifi.phy import MacTiming
 
 CELL = WifiConfig(

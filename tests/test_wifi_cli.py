@@ -61,7 +61,7 @@ def test_trace_then_solve_with_compare(tmp_path):
 
 
 def test_capacity_small(tmp_path):
-    pytest.importorskip("codesign_mb.pipeline.toy")
+    pytest.importorskip("codesign_mb.plants.toy")
     r = runner.invoke(
         app,
         ["wifi", "capacity", "--robots", "1..2", "--channels", "paper", "--schedulers",

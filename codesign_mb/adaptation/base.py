@@ -1,33 +1,15 @@
-"""The QoS policy interface ``pi_q, pi_tau`` (``eq_q_pol``, ``eq_t_pol``) and static QoS."""
+"""Static QoS: the paper's baseline policy (the interface, :class:`QosPolicy`, is the network's)."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Protocol, runtime_checkable
 
 import numpy as np
 from numpy.typing import NDArray
 
-from codesign_mb.network.qos import QosRequest
+from codesign_mb.network.qos import QosPolicy, QosRequest
 
 __all__ = ["QosPolicy", "StaticQos"]
-
-
-@runtime_checkable
-class QosPolicy(Protocol):
-    """Chooses the QoS of the packet sent at ``t`` from what was held at ``t - 1``.
-
-    ``(q_t, tau_t) = pi(y_{t-1}, zeta_{t-1})`` (``eq_q_pol``, ``eq_t_pol``). The policy runs at
-    the edge: it sees the remote observation and its age, not the robot's estimate.
-    """
-
-    def reset(self, *, seed: int | None = None) -> None:
-        """Start an episode."""
-        ...
-
-    def request(self, observation: NDArray[np.float64], age: int) -> QosRequest:
-        """QoS for the next packet, given ``y_{t-1}`` and ``zeta_{t-1}``."""
-        ...
 
 
 @dataclass(frozen=True)

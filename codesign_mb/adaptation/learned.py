@@ -1,7 +1,7 @@
 """The learned control-aware QoS policy of stage C (``eq_q_t_pol2``): a trained SB3 SAC actor.
 
 The agent's observation and action are fixed by a :class:`QosInterface`, shared by the
-training env (:class:`codesign_mb.pipeline.stage_c.QosAdaptationEnv`) and the deployed
+training env (:class:`codesign_mb.stages.stage_c.QosAdaptationEnv`) and the deployed
 :class:`LearnedQosPolicy`, so both see exactly the same numbers:
 
 * observation: ``(y_{t-1}, zeta_{t-1} / age_scale)`` (``eq_q_pol``), then the optional extra
@@ -23,7 +23,9 @@ from typing import Any, Protocol, runtime_checkable
 import numpy as np
 from numpy.typing import NDArray
 
+from codesign_mb.core import registry
 from codesign_mb.network.qos import QosRequest
+from codesign_mb.core.results import atomic_write
 
 __all__ = [
     "QOS_FEATURES",
@@ -142,34 +144,6 @@ class PredictorStdFeature:
         self.elapsed_time = bool(elapsed_time)
         self.dim = 1 + int(self.lift_indicator) + int(self.elapsed_time)
 
-    @classmethod
-    def from_env(
-        cls,
-        env: Any,
-        *,
-        latency_steps: int = 1,
-        scale_m: float = 0.01,
-        lift_indicator: bool = True,
-        elapsed_time: bool = True,
-        lift_margin_m: float | None = 0.03,
-        predictor_options: dict[str, Any] | None = None,
-    ) -> PredictorStdFeature:
-        """For a plant (wrapped or not): the robot's predictor settings and the horizon."""
-        from codesign_mb.adaptation.rules import PredictorReplica
-
-        replica = PredictorReplica.from_env(
-            env, lift_margin_m=lift_margin_m, predictor_options=predictor_options
-        )
-        horizon = getattr(env.unwrapped, "horizon", None)
-        return cls(
-            replica,
-            horizon=None if horizon is None else int(horizon),
-            latency_steps=latency_steps,
-            scale_m=scale_m,
-            lift_indicator=lift_indicator,
-            elapsed_time=elapsed_time,
-        )
-
     def reset(self) -> None:
         self.replica.reset()
 
@@ -186,11 +160,8 @@ class PredictorStdFeature:
         return np.array(out)
 
 
-QOS_FEATURES: dict[str, str] = {
-    "elapsed_time": "codesign_mb.adaptation.learned:ElapsedTimeFeature.from_env",
-    "predictor_std": "codesign_mb.adaptation.learned:PredictorStdFeature.from_env",
-}
-"""Feature kind -> factory ``"module:callable"`` called as ``callable(env, **options)``.
+QOS_FEATURES = registry.kinds("qos_feature")
+"""Feature kinds of the component registry, each built as ``factory(env, **options)``.
 
 A feature must be computable at the edge from what the QoS policy is given, ``(y, zeta)``
 (and its own state, e.g. a replica of a model-based predictor fed with the same stream), so
@@ -208,9 +179,8 @@ def make_features(
         raise ValueError(
             f"unknown QoS feature kind {kind!r}; expected one of none, {', '.join(QOS_FEATURES)}"
         )
-    from codesign_mb.evaluation.evaluate import Factory
-
-    return Factory(QOS_FEATURES[kind], dict(options or {}))(env)
+    features: QosFeatures = registry.create("qos_feature", kind, env, **dict(options or {}))
+    return features
 
 
 @dataclass(frozen=True)
@@ -347,7 +317,6 @@ class LearnedQosPolicy:
     # -- persistence ------------------------------------------------------------------------
     def save(self, directory: str | Path, *, extra: dict[str, Any] | None = None) -> Path:
         """Write ``model.zip`` and ``qos_policy.json`` (the interface) into ``directory``."""
-        from codesign_mb.evaluation.results import atomic_write
 
         directory = Path(directory)
         directory.mkdir(parents=True, exist_ok=True)

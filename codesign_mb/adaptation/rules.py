@@ -26,7 +26,7 @@ still meets a success constraint.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Mapping
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -85,78 +85,24 @@ class PredictorReplica:
 
     Parameters
     ----------
-    layout:
-        Name -> slice of the *remote* part of the observation: ``"object_pos"`` and
-        optionally ``"object_vel"``.
-    control_period_s:
-        Control period (the predictor's ``dt``).
+    predictor:
+        A fresh :class:`~codesign_mb.estimation.predictor.DelayCompensatingPredictor` with
+        the robot's settings, on the *remote* layout (built by
+        :func:`codesign_mb.rollout.compose.predictor_replica`; the replica only reads it
+        through ``reset``/``estimate`` and its covariance model ``A``, ``Q``, ``P``).
     lift_margin_m:
         Height above the first held position that counts as lifted (``None``: never).
-    predictor_options:
-        Keyword arguments of the predictor (noise levels, prior belt velocity).
     """
 
-    def __init__(
-        self,
-        layout: Mapping[str, slice],
-        *,
-        control_period_s: float,
-        lift_margin_m: float | None = 0.03,
-        predictor_options: Mapping[str, Any] | None = None,
-    ) -> None:
-        from codesign_mb.estimation.predictor import DelayCompensatingPredictor
-
+    def __init__(self, predictor: Any, *, lift_margin_m: float | None = 0.03) -> None:
         if lift_margin_m is not None and not lift_margin_m > 0:
             raise ValueError(f"lift_margin_m must be > 0 or None, got {lift_margin_m!r}")
         self.lift_margin_m = lift_margin_m
-        self.predictor = DelayCompensatingPredictor(
-            layout, control_period_s=control_period_s, **dict(predictor_options or {})
-        )
-        self._pos = self.predictor._pos
+        self.predictor = predictor
+        self._pos = predictor._pos
         self.calls = 0
         self._start_z: float | None = None
         self.lifted = False
-
-    @staticmethod
-    def env_arguments(env: Any, predictor_options: Mapping[str, Any] | None = None) -> dict:
-        """``layout``, ``control_period_s`` and ``predictor_options`` for a plant env.
-
-        The remote layout of the plant, and the robot's predictor settings
-        (:meth:`DelayCompensatingPredictor.from_env`), overridden by ``predictor_options``.
-        """
-        from codesign_mb.estimation.predictor import DelayCompensatingPredictor
-
-        plant = env.unwrapped
-        remote = plant.remote_slice
-        layout = {
-            name: slice(s.start - remote.start, s.stop - remote.start)
-            for name, s in plant.observation_layout.items()
-            if s.start >= remote.start and s.stop <= remote.stop
-        }
-        reference = DelayCompensatingPredictor.from_env(env)
-        options = {
-            "prior_velocity": tuple(reference.prior_velocity),
-            "position_noise_std": reference.position_noise_std,
-            "velocity_noise_std": reference.velocity_noise_std,
-            "accel_std": reference.accel_std,
-            **dict(predictor_options or {}),
-        }
-        return {
-            "layout": layout,
-            "control_period_s": float(plant.control_period_s),
-            "predictor_options": options,
-        }
-
-    @classmethod
-    def from_env(
-        cls,
-        env: Any,
-        *,
-        lift_margin_m: float | None = 0.03,
-        predictor_options: Mapping[str, Any] | None = None,
-    ) -> PredictorReplica:
-        """For a plant (wrapped or not), with the robot's predictor settings."""
-        return cls(lift_margin_m=lift_margin_m, **cls.env_arguments(env, predictor_options))
 
     def reset(self) -> None:
         """Start an episode (the predictor restarts from the next held state)."""
@@ -205,29 +151,20 @@ class CovarianceTriggeredQos:
 
     Parameters
     ----------
-    layout:
-        Name -> slice of the *remote* part of the observation (what the policy is given):
-        ``"object_pos"`` and optionally ``"object_vel"``.
-    control_period_s:
-        Control period (the predictor's ``dt``).
+    replica:
+        The edge's :class:`PredictorReplica` of the robot's predictor
+        (:func:`codesign_mb.rollout.compose.covariance_rule` builds the rule for a plant).
     threshold_m:
         Position uncertainty (RMS, m) above which a packet is asked for with ``high``.
     low, high:
         Reliabilities requested (``high`` also before anything has arrived).
     latency_steps:
         ``tau`` requested with every packet (>= 1 on WiFi).
-    lift_margin_m:
-        Once the held object is this much above where it started, request ``low`` for good
-        (``None``: never).
-    predictor_options:
-        Keyword arguments of
-        :class:`~codesign_mb.estimation.predictor.DelayCompensatingPredictor` (noise levels,
-        prior belt velocity); :meth:`from_env` fills them in from the plant like the robot's.
 
     Examples
     --------
-    >>> layout = {"object_pos": slice(0, 3)}
-    >>> rule = CovarianceTriggeredQos(layout, control_period_s=0.04, threshold_m=0.01)
+    >>> from codesign_mb.rollout.compose import covariance_rule_on
+    >>> rule = covariance_rule_on({"object_pos": slice(0, 3)}, 0.04, threshold_m=0.01)
     >>> rule.reset(seed=0)
     >>> rule.request(np.zeros(3), 0).reliability  # only the prior: ask for the state
     1.0
@@ -235,15 +172,12 @@ class CovarianceTriggeredQos:
 
     def __init__(
         self,
-        layout: Mapping[str, slice],
+        replica: PredictorReplica,
         *,
-        control_period_s: float,
         threshold_m: float = 0.01,
         low: float = 0.2,
         high: float = 1.0,
         latency_steps: int = 1,
-        lift_margin_m: float | None = 0.03,
-        predictor_options: Mapping[str, Any] | None = None,
     ) -> None:
         QosRequest(low, latency_steps)
         QosRequest(high, latency_steps)
@@ -254,23 +188,8 @@ class CovarianceTriggeredQos:
         self.low, self.high = float(low), float(high)
         self.latency_steps = int(latency_steps)
         self.threshold_m = float(threshold_m)
-        self.lift_margin_m = lift_margin_m
-        self.replica = PredictorReplica(
-            layout,
-            control_period_s=control_period_s,
-            lift_margin_m=lift_margin_m,
-            predictor_options=predictor_options,
-        )
-
-    @classmethod
-    def from_env(cls, env: Any, **options: Any) -> CovarianceTriggeredQos:
-        """For a plant (wrapped or not): remote layout, period and the robot's predictor settings.
-
-        ``options`` are the constructor's keyword arguments (``predictor_options`` entries
-        override what is read from the plant).
-        """
-        arguments = PredictorReplica.env_arguments(env, options.pop("predictor_options", None))
-        return cls(**arguments, **options)
+        self.replica = replica
+        self.lift_margin_m = replica.lift_margin_m
 
     @property
     def predictor(self) -> Any:

@@ -32,9 +32,9 @@ from codesign_mb.cli.common import (
 __all__ = ["BENCHMARKS", "BenchConfig", "register", "resolve_benchmark", "run_benchmark"]
 
 BENCHMARKS: dict[str, str] = {
-    "env": "codesign_mb.robot.bench:bench_env",
-    "mpc": "codesign_mb.control.bench:bench_mpc",
-    "allocators": "codesign_mb.wifi.bench:bench_allocators",
+    "env": "codesign_mb.bench.env:bench_env",
+    "mpc": "codesign_mb.bench.mpc:bench_mpc",
+    "allocators": "codesign_mb.bench.allocators:bench_allocators",
 }
 """Benchmark name -> ``"module:function"``; the function is ``(*, repeats, seed) -> dict``."""
 

@@ -40,6 +40,7 @@ Conventions
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import json
 import os
@@ -50,7 +51,7 @@ from typing import Annotated, Any, ParamSpec, TypeVar
 
 import typer
 
-from codesign_mb.config import from_mapping, load_config_file
+from codesign_mb.core.config import from_mapping, load_config_file
 
 __all__ = [
     "ConfigOption",
@@ -62,6 +63,7 @@ __all__ = [
     "explicit",
     "load_config",
     "note",
+    "progress_bar",
     "track",
 ]
 
@@ -146,7 +148,7 @@ def emit(data: Any, *, as_json: bool, title: str | None = None) -> None:
     dotted keys), a sequence of mappings or a ``pandas.DataFrame`` (one row each), or a
     scalar/string (printed as is). JSON output is ``json.dumps`` of :func:`to_jsonable`.
     """
-    from codesign_mb.evaluation.results import to_jsonable
+    from codesign_mb.core.results import to_jsonable
 
     plain = to_jsonable(data)
     if as_json:
@@ -217,8 +219,22 @@ def track(
     """
     if total is None and hasattr(iterable, "__len__"):
         total = len(iterable)  # type: ignore[arg-type]
+    with progress_bar(description, disable=disable) as progress:
+        for done, item in enumerate(iterable, start=1):
+            yield item
+            progress(done, total if total is not None else done)
+
+
+@contextlib.contextmanager
+def progress_bar(
+    description: str, *, disable: bool = False
+) -> Iterator[Callable[[int, int], None]]:
+    """A ``progress(done, total)`` callback drawing a rich bar on stderr (for library calls).
+
+    Off under the same conditions as :func:`track`; then the callback does nothing.
+    """
     if disable or os.environ.get("CODESIGN_NO_PROGRESS") or not sys.stderr.isatty():
-        yield from iterable
+        yield lambda done, total: None
         return
     from rich.console import Console
     from rich.progress import (
@@ -237,12 +253,13 @@ def track(
         TimeElapsedColumn(),
         TimeRemainingColumn(),
         console=Console(stderr=True),
-        transient=False,
-    ) as progress:
-        task = progress.add_task(description, total=total)
-        for item in iterable:
-            yield item
-            progress.advance(task)
+    ) as bar:
+        task = bar.add_task(description, total=None)
+
+        def update(done: int, total: int) -> None:
+            bar.update(task, completed=done, total=total)
+
+        yield update
 
 
 def explicit(
@@ -295,7 +312,7 @@ def load_config(
         A (frozen) config dataclass; validation is its ``__post_init__``.
     config_path:
         TOML or YAML file, or ``None`` for the dataclass defaults. Unknown keys are an error
-        (:func:`codesign_mb.config.from_mapping`), so a misspelt option fails.
+        (:func:`codesign_mb.core.config.from_mapping`), so a misspelt option fails.
     overrides:
         Values from the command line, applied on top of the file. ``None`` values mean "not
         given" and are skipped; a dotted key ``"link.reliability"`` sets a nested field.

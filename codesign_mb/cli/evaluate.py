@@ -86,9 +86,9 @@ def register(app: typer.Typer) -> None:
             return
         import json
 
+        from codesign_mb.core.results import atomic_write, to_jsonable, write_results
         from codesign_mb.evaluation.evaluate import EvaluateConfig, iter_episodes, rows_to_table
         from codesign_mb.evaluation.evaluate import summarize as summarize_table
-        from codesign_mb.evaluation.results import atomic_write, to_jsonable, write_results
 
         cfg = load_config(
             EvaluateConfig,
@@ -169,8 +169,8 @@ def register(app: typer.Typer) -> None:
         Writes OUT/fig_cn.parquet/.csv/.json (one row per point, with Wilson intervals) and
         OUT/fig_cn.png. Config file: top level or [fig_cn] (FigCnConfig fields).
         """
-        from codesign_mb.evaluation.figures_cn import FigCnConfig, plot_fig_cn, run_fig_cn
-        from codesign_mb.evaluation.results import write_results
+        from codesign_mb.core.results import write_results
+        from codesign_mb.studies.fig_cn import FigCnConfig, plot_fig_cn, run_fig_cn
 
         cfg = load_config(
             FigCnConfig,

@@ -26,7 +26,7 @@ _HELP = (
     "Render the paper's Table I and Figs. 4-6 (tables tab_p, fig_cn, fig_lat, fig_wifi) next to "
     "their model-based counterparts, and every sweep table, from RESULTS_DIR.\n\n"
     "Writes PNG figures and report.md; absent tables are skipped with a note. Table names and "
-    "columns: see codesign_mb.evaluation.report. --seed picks the episode shown in Fig. 5 when "
+    "columns: see codesign_mb.studies.report. --seed picks the episode shown in Fig. 5 when "
     "the table holds several."
 )
 
@@ -66,7 +66,7 @@ def register(app: typer.Typer) -> None:
         as_json: JsonOption = False,
     ) -> None:
         """Render figures and a Markdown summary from RESULTS_DIR."""
-        from codesign_mb.evaluation.report import ReportConfig, build_report
+        from codesign_mb.studies.report import ReportConfig, build_report
 
         cfg = load_config(
             ReportConfig,

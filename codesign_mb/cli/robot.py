@@ -56,7 +56,7 @@ class RenderConfig:
         from codesign_mb.plants.conveyor import ConveyorConfig
 
         if isinstance(self.env, dict):
-            from codesign_mb.config import from_mapping
+            from codesign_mb.core.config import from_mapping
 
             object.__setattr__(self, "env", from_mapping(ConveyorConfig, self.env, where="env"))
         if not isinstance(self.env, ConveyorConfig):

@@ -28,7 +28,7 @@ _DEFAULTS: dict[str, Any] = {
     "seed": 0,
     "n_seeds": 3,
 }
-"""Mirrors :class:`codesign_mb.evaluation.sweep.SweepConfig` (kept here so --help is fast)."""
+"""Mirrors :class:`codesign_mb.studies.sweep.SweepConfig` (kept here so --help is fast)."""
 
 
 _HELP = (
@@ -138,7 +138,7 @@ def register(app: typer.Typer) -> None:
         as_json: JsonOption = False,
     ) -> None:
         """Run a sweep: pipelines x belt speeds x robot counts x seeds, one row per trial."""
-        from codesign_mb.evaluation.sweep import SweepConfig, run_sweep
+        from codesign_mb.studies.sweep import SweepConfig, run_sweep
 
         overrides = explicit(
             ctx,
@@ -168,7 +168,7 @@ def register(app: typer.Typer) -> None:
                 ),
             )
         except KeyboardInterrupt:
-            from codesign_mb.evaluation.sweep import TrialStore
+            from codesign_mb.studies.sweep import TrialStore
 
             stored = len(TrialStore(out / ".trials" / cfg.name).keys())
             note(

@@ -5,7 +5,7 @@ Writes into ``OUT``:
 ``tab_p.{parquet,csv,json}``
     One row per table row and plant: success with its 95 % Wilson interval, average requested
     reliability, delivered fraction, training cost, CPU ms per control step, Pareto flag,
-    ``status`` and the paper's figures (columns: :mod:`codesign_mb.pipeline.table`).
+    ``status`` and the paper's figures (columns: :mod:`codesign_mb.studies.table`).
 ``tab_p.md``
     The same as a Markdown table.
 ``tab_p_episodes.*``
@@ -99,8 +99,8 @@ def register(app: typer.Typer) -> None:
         """Evaluate the pipeline's {controller, estimator, QoS} rows; write tab_p and figures."""
         import torch
 
-        from codesign_mb.evaluation.results import atomic_write, write_results
-        from codesign_mb.pipeline.table import (
+        from codesign_mb.core.results import atomic_write, write_results
+        from codesign_mb.studies.table import (
             TableConfig,
             markdown_table,
             plot_pareto,

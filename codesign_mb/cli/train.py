@@ -59,25 +59,25 @@ def _overrides(assignments: list[str]) -> dict[str, Any]:
 
 def _config_class(stage: str) -> type:
     if stage == "a":
-        from codesign_mb.pipeline.stage_a import StageAConfig
+        from codesign_mb.stages.stage_a import StageAConfig
 
         return StageAConfig
     if stage == "b":
-        from codesign_mb.pipeline.stage_b import StageBConfig
+        from codesign_mb.stages.stage_b import StageBConfig
 
         return StageBConfig
     if stage == "c":
-        from codesign_mb.pipeline.stage_c import StageCConfig
+        from codesign_mb.stages.stage_c import StageCConfig
 
         return StageCConfig
-    from codesign_mb.pipeline.stage_d import StageDConfig
+    from codesign_mb.stages.stage_d import StageDConfig
 
     return StageDConfig
 
 
 def default_out(stage: str, config: Any) -> Path:
     """Where a stage writes by default: ``<models>/checkpoints/stage_<x>``."""
-    from codesign_mb.pipeline.components import models_dir
+    from codesign_mb.core.registry import models_dir
 
     name = f"stage_{stage}"
     if stage == "c":
@@ -107,18 +107,18 @@ def run_stage(
         "command": command,
     }
     if stage == "a":
-        from codesign_mb.pipeline.stage_a import train_stage_a
+        from codesign_mb.stages.stage_a import train_stage_a
 
         return train_stage_a(config, **kwargs)
     if stage == "b":
-        from codesign_mb.pipeline.stage_b import train_stage_b
+        from codesign_mb.stages.stage_b import train_stage_b
 
         return train_stage_b(config, **kwargs)
     if stage == "c":
-        from codesign_mb.pipeline.stage_c import train_stage_c
+        from codesign_mb.stages.stage_c import train_stage_c
 
         return train_stage_c(config, **kwargs)
-    from codesign_mb.pipeline.stage_d import train_stage_d
+    from codesign_mb.stages.stage_d import train_stage_d
 
     return train_stage_d(config, **kwargs)
 
@@ -209,7 +209,7 @@ def register(app: typer.Typer) -> None:
 
 def _apply(config: Any, overrides: dict[str, Any]) -> Any:
     """Re-build ``config`` with dotted overrides (``None`` values clear a field)."""
-    from codesign_mb.config import from_mapping, to_mapping
+    from codesign_mb.core.config import from_mapping, to_mapping
 
     data = to_mapping(config)
     for key, value in overrides.items():

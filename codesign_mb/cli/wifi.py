@@ -81,7 +81,7 @@ def register(app: typer.Typer) -> None:
         seed: SeedOption = 0,
     ) -> None:
         """Record a static-QoS traffic trace as an instance for ``codesign solve``."""
-        from codesign_mb.wifi.capacity import CHANNEL_PRESETS
+        from codesign_mb.studies.fig_wifi import CHANNEL_PRESETS
         from codesign_mb.wifi.cell import generate_trace
 
         if channel not in CHANNEL_PRESETS:
@@ -141,9 +141,9 @@ def register(app: typer.Typer) -> None:
         from the config file's plant and pipelines tables (in a capacity table or at the top
         level), which also takes robots_by_channel (e.g. better = [8, 16, 32]).
         """
-        from codesign_mb.config import to_mapping
-        from codesign_mb.evaluation.results import write_results
-        from codesign_mb.wifi.capacity import (
+        from codesign_mb.core.config import to_mapping
+        from codesign_mb.core.results import write_results
+        from codesign_mb.studies.fig_wifi import (
             CapacityConfig,
             capacity_table,
             plot_capacity,

@@ -1,4 +1,7 @@
-"""LQR and certainty-equivalent LQG over the link, with the Riccati cost to check against.
+"""LQR for linear plants; the Riccati cost of certainty-equivalent LQG over the link.
+
+The LQG pair and its cost live in :mod:`codesign_mb.rollout.compose` (they combine this
+controller with the Kalman filter of :mod:`codesign_mb.estimation`).
 
 For ``x_{t+1} = A x_t + B u_t + w_t`` (``w_t ~ N(0, W)``) and the stage cost
 ``x' Q x + u' R u``, the LQR gain ``K`` (python-control ``dlqr``) and the Riccati solution
@@ -9,24 +12,22 @@ is uncorrelated with ``x_hat_t`` (the Kalman conditional mean), the average cost
 
 The identity follows from completing the square in ``x' S x``; it needs only that the input
 reaches the plant (the lossy link is the sensor link). With ``q = 1`` and no delay ``Sigma``
-is the stationary posterior covariance of the Kalman filter (:func:`lqg_average_cost`); under
-loss or delay pass the Monte-Carlo ``E[P_{t|t}]`` of
+is the stationary posterior covariance of the Kalman filter
+(:func:`~codesign_mb.rollout.compose.lqg_average_cost`); under loss or delay pass the
+Monte-Carlo ``E[P_{t|t}]`` of
 :func:`~codesign_mb.estimation.kalman.intermittent_riccati`.
 """
 
 from __future__ import annotations
-
-from dataclasses import dataclass
 
 import control
 import gymnasium as gym
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from codesign_mb.estimation.kalman import KalmanEstimator, steady_state_covariance
 from codesign_mb.plants.linear import LinearPlantEnv, LinearPlantSpec
 
-__all__ = ["LqgCost", "LqrController", "lqg", "lqg_average_cost"]
+__all__ = ["LqrController"]
 
 FloatArray = NDArray[np.float64]
 
@@ -129,78 +130,3 @@ class LqrController:
         if x.shape != (self.A.shape[0],):
             raise ValueError(f"observation must have {self.A.shape[0]} entries, got {x.size}")
         return -self.gain @ x
-
-
-@dataclass(frozen=True, slots=True)
-class LqgCost:
-    """The average LQG cost per step, split into its two Riccati terms."""
-
-    control: float
-    """``tr(S W)``: the cost of the process noise under perfect state feedback."""
-    estimation: float
-    """``tr(K' (R + B' S B) K Sigma)``: the price of the estimation error."""
-
-    @property
-    def total(self) -> float:
-        """``control + estimation``, per step."""
-        return self.control + self.estimation
-
-
-def lqg_average_cost(
-    plant: LinearPlantSpec,
-    state_cost: ArrayLike,
-    input_cost: ArrayLike,
-    *,
-    posterior_cov: ArrayLike | None = None,
-) -> LqgCost:
-    """Expected infinite-horizon average cost per step of certainty-equivalent LQG.
-
-    ``J = tr(S W) + tr(K' (R + B' S B) K Sigma)`` (module docstring).
-
-    Parameters
-    ----------
-    plant:
-        The plant (``A``, ``B``, ``C``, ``W``, ``V``).
-    state_cost, input_cost:
-        ``Q`` ``(n, n)`` and ``R`` ``(m, m)`` of the stage cost ``x' Q x + u' R u``.
-    posterior_cov:
-        ``Sigma = lim E[P_{t|t}]``, shape ``(n, n)``; default the stationary posterior
-        covariance of the Kalman filter with every measurement delivered at once (``q = 1``).
-    """
-    ctrl = LqrController.for_plant(plant, state_cost, input_cost)
-    n = plant.n_states
-    if posterior_cov is None:
-        _, sigma = steady_state_covariance(plant.A, plant.C, plant.W, plant.V)
-    else:
-        sigma = _matrix("posterior_cov", posterior_cov, (n, n))
-    K, S, B = ctrl.gain, ctrl.riccati, plant.B
-    weight = K.T @ (ctrl.input_cost + B.T @ S @ B) @ K
-    return LqgCost(control=float(np.trace(S @ plant.W)), estimation=float(np.trace(weight @ sigma)))
-
-
-def lqg(
-    env: gym.Env, *, max_delay_steps: int = 64, use_arrivals: bool = True
-) -> tuple[KalmanEstimator, LqrController]:
-    """Certainty-equivalent LQG for ``env``: the Kalman estimator and the LQR on its estimate.
-
-    ``env`` is a :class:`LinearPlantEnv`, usually behind a
-    :class:`~codesign_mb.network.LinkObservationWrapper`; pass the pair to
-    :func:`~codesign_mb.evaluation.rollout.rollout`.
-
-    Examples
-    --------
-    >>> from codesign_mb.adaptation.base import StaticQos
-    >>> from codesign_mb.evaluation.rollout import rollout
-    >>> from codesign_mb.network import BernoulliLink, LinkObservationWrapper
-    >>> from codesign_mb.plants.linear import LinearPlantEnv, scalar_unstable
-    >>> env = LinkObservationWrapper(
-    ...     LinearPlantEnv(scalar_unstable(), horizon=50), BernoulliLink(), StaticQos(0.9)
-    ... )
-    >>> estimator, controller = lqg(env)
-    >>> len(rollout(env, estimator, controller, seed=0))
-    50
-    """
-    estimator = KalmanEstimator.for_env(
-        env, max_delay_steps=max_delay_steps, use_arrivals=use_arrivals
-    )
-    return estimator, LqrController.for_env(env)

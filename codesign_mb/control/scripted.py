@@ -18,13 +18,15 @@ from __future__ import annotations
 
 from typing import Any
 
+import gymnasium as gym
 import numpy as np
 from numpy.typing import NDArray
 
 from codesign_mb.plants.conveyor import ConveyorConfig, observation_layout
+from codesign_mb.plants.toy import ToyConveyor
 from codesign_mb.robot.scene import BELT_SURFACE_Z, OBJECTS
 
-__all__ = ["ScriptedPickController"]
+__all__ = ["ScriptedPickController", "ToyPickController"]
 
 _APPROACH, _DESCEND, _GRIP, _LIFT = "approach", "descend", "grip", "lift"
 
@@ -138,4 +140,46 @@ class ScriptedPickController:
         action = np.empty(4)
         action[:3] = np.clip(velocity / scale, -1.0, 1.0)
         action[3] = 1.0 if close else -1.0
+        return action
+
+
+class ToyPickController:
+    """A scripted pick for :class:`ToyConveyor` (a :class:`~codesign_mb.control.Controller`).
+
+    Moves above the object, descends onto it, closes, lifts. Used as the demonstration
+    controller of stage A on the toy and as a reference in tests.
+    """
+
+    def __init__(self, max_speed_mps: float = 0.5, control_period_s: float = 0.04) -> None:
+        self.max_speed_mps = max_speed_mps
+        self.control_period_s = control_period_s
+        self._closed = False
+
+    @classmethod
+    def from_env(cls, env: gym.Env) -> ToyPickController:
+        c = env.unwrapped.config
+        return cls(c.max_speed_mps, c.control_period_s)
+
+    def reset(self, *, seed: int | None = None) -> None:
+        self._closed = False
+
+    def act(self, observation: NDArray[np.float64]) -> NDArray[np.float64]:
+        lay = ToyConveyor.observation_layout
+        grip, obj = observation[lay["gripper_pos"]], observation[lay["object_pos"]]
+        vel = observation[lay["object_vel"]]
+        target = obj + vel * self.control_period_s
+        error = target - grip
+        horizontal = float(np.linalg.norm(error[:2]))
+        if self._closed:
+            if horizontal > 0.05 and grip[2] < 0.02:
+                self._closed = False  # missed: open and retry
+            command = np.array([0.0, 0.0, 1.0])
+        else:
+            if horizontal > 0.02:
+                error[2] = max(error[2], 0.04 - grip[2])  # stay above until aligned
+            command = error / (self.max_speed_mps * self.control_period_s)
+            if horizontal < 0.015 and abs(error[2]) < 0.01:
+                self._closed = True
+            command[:2] += vel[:2] / self.max_speed_mps
+        action = np.append(np.clip(command, -1.0, 1.0), 1.0 if self._closed else -1.0)
         return action

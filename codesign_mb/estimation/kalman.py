@@ -37,7 +37,7 @@ import numpy as np
 import scipy.linalg
 from numpy.typing import ArrayLike, NDArray
 
-from codesign_mb.config import as_matrix
+from codesign_mb.core.config import as_matrix
 from codesign_mb.estimation.base import split_networked_observation
 from codesign_mb.network.link import PRIOR_TIMESTAMP
 from codesign_mb.network.wrapper import LinkObservationWrapper

@@ -15,7 +15,7 @@ residuals. With no information (``f = 0``) the estimate is the stale observation
 * :class:`MlpEstimator` is the paper's ``pi_e(y_t, zeta_t)``: memoryless.
 * :class:`LstmEstimator` runs an LSTM over the whole history of features.
 
-Training lives in :mod:`codesign_mb.pipeline.stage_b`; this module holds the networks, the
+Training lives in :mod:`codesign_mb.stages.stage_b`; this module holds the networks, the
 feature map shared by training and inference, and save/load (a single ``.pt`` file loadable
 with ``torch.load(weights_only=True)``).
 """
@@ -31,6 +31,7 @@ import numpy as np
 import torch
 from numpy.typing import NDArray
 from torch import nn
+from codesign_mb.core.results import atomic_write
 
 __all__ = [
     "EstimatorFeatures",
@@ -214,7 +215,6 @@ class LearnedEstimator:
 
     def save(self, path: str | Path) -> Path:
         """Write the estimator to one ``.pt`` file (atomically) and return its path."""
-        from codesign_mb.evaluation.results import atomic_write
 
         path = Path(path)
         blob = {

@@ -27,6 +27,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from codesign_mb.estimation.base import split_networked_observation
+from codesign_mb.estimation.kalman import IntermittentKalmanFilter
 
 __all__ = ["DelayCompensatingPredictor", "constant_velocity_model"]
 
@@ -163,7 +164,6 @@ class DelayCompensatingPredictor:
 
     # -- Estimator protocol --------------------------------------------------------------
     def reset(self, observation: NDArray[np.float64]) -> NDArray[np.float64]:
-        from codesign_mb.estimation.kalman import IntermittentKalmanFilter
 
         plant_obs, age = split_networked_observation(observation)
         self._kf = IntermittentKalmanFilter(

@@ -1,5 +1,1 @@
-"""Rollouts, metrics, tables, plots and sweeps."""
-
-from codesign_mb.evaluation.rollout import rollout
-
-__all__ = ["rollout"]
+"""Seeded parallel evaluation (one process pool, local or Ray) and its summaries."""

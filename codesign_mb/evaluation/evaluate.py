@@ -10,61 +10,54 @@ warm start), and episodes run in fresh copies of the components. The table is th
 same whatever the number of worker processes, except the wall-time columns
 (:data:`TIMING_COLUMNS`).
 
-Workers are started with the ``spawn`` method (safe with MuJoCo, CasADi and torch loaded):
-a script calling :func:`evaluate` with ``workers > 1`` needs the usual
-``if __name__ == "__main__":`` guard.
+Episodes run in the one process pool (:mod:`codesign_mb.evaluation.pool`); a script calling
+:func:`evaluate` with ``workers > 1`` needs the usual ``if __name__ == "__main__":`` guard.
 
 Components are given either as instances (pickled into each worker and reset per episode)
 or as picklable factories, called once per worker as ``factory(env)`` (``env`` is the plant,
-unwrapped) or ``factory()`` when they take no argument. :class:`Factory` names a factory by
-import path, and :func:`component` builds the named ones the CLI offers (``"mpc"``,
-``"predictor"``, ``"plain"``, ...).
+unwrapped) or ``factory()`` when they take no argument; the component registry
+(:mod:`codesign_mb.core.registry`) turns a kind name (``"mpc"``, ``"predictor"``,
+``"none"``, ...) into such a factory.
 """
 
 from __future__ import annotations
 
-import importlib
 import inspect
 import math
-import os
 import pickle
-import statistics
-import sys
 import time
-import warnings
 from collections.abc import Callable, Iterator, Mapping, Sequence
-from concurrent.futures import ProcessPoolExecutor, as_completed
-from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
-from multiprocessing import get_context
 from typing import Any
 
 import numpy as np
 import pandas as pd
 
 from codesign_mb.adaptation.base import StaticQos
-from codesign_mb.evaluation.rollout import rollout
+from codesign_mb.core import registry
+from codesign_mb.core.config import from_mapping
+from codesign_mb.core.registry import ComponentSpec, Factory
+from codesign_mb.core.seeds import episode_seeds
+from codesign_mb.core.stats import wilson_interval
+from codesign_mb.evaluation import pool
 from codesign_mb.network.link import BernoulliLink
+from codesign_mb.network.qos import QosRequest
 from codesign_mb.network.wrapper import LinkObservationWrapper
+from codesign_mb.plants.conveyor import ConveyorConfig, ConveyorPickPlace
+from codesign_mb.rollout import rollout
+from codesign_mb.control.mpc import MpcConfig
 
 __all__ = [
-    "CONTROLLERS",
-    "ESTIMATORS",
-    "QOS_POLICIES",
     "TIMING_COLUMNS",
     "EvaluateConfig",
-    "Factory",
-    "component",
-    "episode_seeds",
+    "episode_row",
     "evaluate",
     "iter_episodes",
     "make_env",
     "rows_to_table",
     "run_config",
     "run_jobs",
-    "single_threaded_worker",
     "summarize",
-    "wilson_interval",
 ]
 
 TIMING_COLUMNS = (
@@ -77,89 +70,16 @@ TIMING_COLUMNS = (
 )
 """Per-episode columns measuring wall time: they vary from run to run, the rest does not."""
 
-_ENVS: dict[str, str] = {
-    "ConveyorConfig": "codesign_mb.plants.conveyor:ConveyorPickPlace",
-}
-"""Config class name -> env class (built as ``Env(config=config)``)."""
-
-
-# -- factories ---------------------------------------------------------------------------------
-def _resolve(target: str) -> Any:
-    module_name, _, attr = target.partition(":")
-    if not module_name or not attr:
-        raise ValueError(f"factory target must be 'module:attribute', got {target!r}")
-    obj: Any = importlib.import_module(module_name)
-    for part in attr.split("."):
-        obj = getattr(obj, part)
-    return obj
-
-
-@dataclass(frozen=True)
-class Factory:
-    """A picklable factory named by import path: ``target(env, **kwargs)`` or ``target(**kwargs)``.
-
-    Parameters
-    ----------
-    target:
-        ``"package.module:attribute"`` (dotted attributes allowed, e.g. a classmethod).
-    kwargs:
-        Keyword arguments of the call.
-    takes_env:
-        Whether ``target`` takes the plant env as its first argument.
-
-    Examples
-    --------
-    >>> f = Factory("codesign_mb.adaptation.base:StaticQos", {"reliability": 0.5}, takes_env=False)
-    >>> f()
-    StaticQos(reliability=0.5, latency_steps=0)
-    """
-
-    target: str
-    kwargs: Mapping[str, Any] = field(default_factory=dict)
-    takes_env: bool = True
-
-    def __call__(self, env: Any = None) -> Any:
-        fn = _resolve(self.target)
-        if self.takes_env:
-            return fn(env, **dict(self.kwargs))
-        return fn(**dict(self.kwargs))
-
-
-CONTROLLERS: dict[str, tuple[str, bool]] = {
-    "mpc": ("codesign_mb.control.mpc:MpcController.from_env", True),
-    "scripted": ("codesign_mb.control.scripted:ScriptedPickController.from_env", True),
-}
-"""Controller name -> (factory target, takes_env)."""
-
-ESTIMATORS: dict[str, tuple[str, bool]] = {
-    "predictor": ("codesign_mb.estimation.predictor:DelayCompensatingPredictor.from_env", True),
-    "plain": ("codesign_mb.estimation.base:PassThroughEstimator", False),
-}
-"""Estimator name -> (factory target, takes_env). ``plain`` uses the stale observation as is."""
-
-
-def component(kind: str, name: str, **kwargs: Any) -> Factory:
-    """The named controller (``kind="controller"``) or estimator (``kind="estimator"``).
-
-    Raises ``ValueError`` naming the choices for an unknown name.
-    """
-    registry = {"controller": CONTROLLERS, "estimator": ESTIMATORS}.get(kind)
-    if registry is None:
-        raise ValueError(f"kind must be 'controller' or 'estimator', got {kind!r}")
-    if name not in registry:
-        raise ValueError(f"unknown {kind} {name!r}; expected one of {', '.join(registry)}")
-    target, takes_env = registry[name]
-    return Factory(target, kwargs, takes_env=takes_env)
-
 
 def make_env(env_config: Any) -> Any:
-    """The plant env of ``env_config``: a known config dataclass, or a zero-argument factory."""
-    name = type(env_config).__name__
-    if name in _ENVS:
-        return _resolve(_ENVS[name])(config=env_config)
+    """The plant env of ``env_config``: a ``ConveyorConfig``, or a zero-argument env factory."""
+    if isinstance(env_config, ConveyorConfig):
+        return ConveyorPickPlace(config=env_config)
     if callable(env_config):
         return env_config()
-    raise ValueError(f"no env known for a {name}; pass one of {', '.join(_ENVS)} or an env factory")
+    raise ValueError(
+        f"no env known for a {type(env_config).__name__}; pass a ConveyorConfig or an env factory"
+    )
 
 
 def _is_instance_of(obj: Any, method: str) -> bool:
@@ -189,45 +109,7 @@ def _build(spec: Any, method: str, env: Any, what: str) -> Any:
     return obj
 
 
-# -- seeds and statistics ----------------------------------------------------------------------
-def episode_seeds(seed: int, trials: int) -> list[int]:
-    """Independent episode seeds: ``SeedSequence(seed).spawn(trials)``, one integer each."""
-    if isinstance(trials, bool) or int(trials) != trials or trials < 1:
-        raise ValueError(f"trials must be an integer >= 1, got {trials!r}")
-    if isinstance(seed, bool) or int(seed) != seed or seed < 0:
-        raise ValueError(f"seed must be a non-negative integer, got {seed!r}")
-    children = np.random.SeedSequence(int(seed)).spawn(int(trials))
-    return [int(c.generate_state(1, dtype=np.uint32)[0]) for c in children]
-
-
-def wilson_interval(k: int, n: int, confidence: float = 0.95) -> tuple[float, float]:
-    """Wilson score interval for a binomial proportion ``k / n``.
-
-    ``(p + z^2/2n -+ z sqrt(p(1-p)/n + z^2/4n^2)) / (1 + z^2/n)`` with ``z`` the two-sided
-    normal quantile of ``confidence``. Unlike the normal approximation it stays inside [0, 1]
-    and is informative at ``k = n`` (e.g. 100/100 gives [0.963, 1]).
-
-    Examples
-    --------
-    >>> [round(x, 4) for x in wilson_interval(8, 10)]
-    [0.4902, 0.9433]
-    """
-    if int(n) != n or n < 1:
-        raise ValueError(f"n must be an integer >= 1, got {n!r}")
-    if int(k) != k or not 0 <= k <= n:
-        raise ValueError(f"k must be an integer in [0, n={n}], got {k!r}")
-    if not 0.0 < confidence < 1.0:
-        raise ValueError(f"confidence must be in (0, 1), got {confidence}")
-    z = statistics.NormalDist().inv_cdf(0.5 + confidence / 2.0)
-    p = k / n
-    denom = 1.0 + z * z / n
-    centre = (p + z * z / (2 * n)) / denom
-    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / denom
-    low = 0.0 if k == 0 else max(0.0, centre - half)
-    high = 1.0 if k == n else min(1.0, centre + half)
-    return low, high
-
-
+# -- summaries ---------------------------------------------------------------------------------
 def summarize(table: pd.DataFrame, confidence: float = 0.95) -> dict[str, Any]:
     """Aggregate an :func:`evaluate` table: success rate with its Wilson interval, QoS, age, MPC.
 
@@ -313,7 +195,7 @@ class _Runner:
 
 
 def episode_row(steps: pd.DataFrame) -> dict[str, Any]:
-    """One episode's metrics from its :func:`~codesign_mb.evaluation.rollout.rollout` record."""
+    """One episode's metrics from its :func:`~codesign_mb.rollout.loop.rollout` record."""
     success = steps["success"].astype(bool) if "success" in steps else pd.Series(False)
     row: dict[str, Any] = {
         "success": bool(success.any()),
@@ -339,7 +221,6 @@ def episode_row(steps: pd.DataFrame) -> dict[str, Any]:
 _RUNNERS: dict[int, _Runner] = {}
 _PAYLOADS: list[bytes] = []
 _CACHE = 2  # runners kept per process (each holds an env and a built controller)
-_MAX_POOL_RESTARTS = 2
 
 
 def _runner_for(job: int) -> _Runner:
@@ -352,37 +233,13 @@ def _runner_for(job: int) -> _Runner:
     return runner
 
 
-def single_threaded_worker() -> None:
-    """Process-pool initializer: one OpenMP/BLAS thread in this worker process.
-
-    Workers already use every core; torch's default of one intra-op thread per core makes
-    the small networks of the learned components about 20x slower when the workers share
-    the cores (SAC's actor: 6.6 ms a call instead of 0.3 ms on 2 cores). An explicit
-    ``OMP_NUM_THREADS`` in the environment is kept.
-    """
-    for variable in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
-        os.environ.setdefault(variable, "1")
-    torch = sys.modules.get("torch")
-    if torch is not None:
-        torch.set_num_threads(int(os.environ["OMP_NUM_THREADS"]))
-
-
-def _init_worker(payloads: list[bytes]) -> None:
-    single_threaded_worker()
+def _load_payloads(payloads: list[bytes]) -> None:
     _RUNNERS.clear()
     _PAYLOADS[:] = payloads
 
 
-def _run_in_worker(job: int, episode: int, seed: int) -> tuple[int, dict[str, Any]]:
+def _run_episode(job: int, episode: int, seed: int) -> tuple[int, dict[str, Any]]:
     return job, _runner_for(job).run(episode, seed)
-
-
-def _check_workers(workers: int | None, tasks: int) -> int:
-    if workers is None:
-        workers = os.cpu_count() or 1
-    if isinstance(workers, bool) or int(workers) != workers or workers < 1:
-        raise ValueError(f"workers must be an integer >= 1, got {workers!r}")
-    return max(1, min(int(workers), tasks))
 
 
 def run_jobs(
@@ -405,45 +262,19 @@ def run_jobs(
         job = _Job(controller, estimator, qos_policy, env_config, link, max_steps)
         payloads.append(pickle.dumps(job))  # fails early, here, on an unpicklable component
         tasks.extend((j, i, s) for i, s in enumerate(episode_seeds(seed, trials)))
-    workers = _check_workers(workers, len(tasks))
-    if workers == 1:
-        runner: _Runner | None = None
-        current = -1
+    if pool.check_workers(workers, len(tasks)) == 1:  # in this process, fresh components
+        runners: dict[int, _Runner] = {}
         for j, i, s in tasks:
-            if j != current:  # fresh copies of the components, as a worker would have
-                runner, current = _Runner(pickle.loads(payloads[j])), j
-            assert runner is not None
-            yield j, runner.run(i, s)
+            if j not in runners:
+                runners.clear()
+                runners[j] = _Runner(pickle.loads(payloads[j]))
+            yield j, runners[j].run(i, s)
         return
-    pending = list(tasks)
-    restarts = 0
-    while pending:
-        with ProcessPoolExecutor(
-            max_workers=workers,
-            mp_context=get_context("spawn"),
-            initializer=_init_worker,
-            initargs=(payloads,),
-        ) as pool:
-            futures = {pool.submit(_run_in_worker, *task): task for task in pending}
-            try:
-                for future in as_completed(futures):
-                    result = future.result()
-                    pending.remove(futures[future])
-                    yield result
-            except BrokenProcessPool:
-                # A worker died (killed from outside, out of memory): episodes are pure
-                # functions of their seed, so the missing ones are rerun in a fresh pool.
-                restarts += 1
-                if restarts > _MAX_POOL_RESTARTS:
-                    raise
-                warnings.warn(
-                    f"a worker process died; rerunning {len(pending)} episodes in a new pool",
-                    RuntimeWarning,
-                    stacklevel=2,
-                )
-            finally:
-                for future in futures:
-                    future.cancel()
+    stream = pool.imap(
+        _run_episode, tasks, workers=workers, initializer=_load_payloads, initargs=(payloads,)
+    )
+    for _, result in stream:
+        yield result
 
 
 def iter_episodes(
@@ -539,10 +370,10 @@ def evaluate(
 
 
 # -- configured runs (the CLI and sweeps) --------------------------------------------------------
-QOS_POLICIES: dict[str, str] = {
-    "static": "codesign_mb.adaptation.base:StaticQos",
-}
-"""QoS policy name -> class taking ``(reliability, latency_steps)``."""
+_CONTROLLERS = ("mpc", "scripted")
+_ESTIMATORS = ("predictor", "none")
+QOS_POLICIES = ("static",)
+"""QoS policies of ``codesign evaluate``: the static ``(q, tau)`` of the config."""
 
 
 @dataclass(frozen=True)
@@ -552,11 +383,11 @@ class EvaluateConfig:
     Parameters
     ----------
     controller:
-        Name in :data:`CONTROLLERS` (``"mpc"``, ``"scripted"``).
+        A controller kind of the registry that needs no checkpoint (``"mpc"``, ``"scripted"``).
     estimator:
-        Name in :data:`ESTIMATORS` (``"predictor"``, ``"plain"``).
+        An estimator kind that needs no checkpoint (``"predictor"``, ``"none"``).
     qos:
-        Name in :data:`QOS_POLICIES` (``"static"``).
+        ``"static"``.
     reliability, latency_steps:
         The QoS ``(q, tau)`` of the static policy.
     belt_speed_mps:
@@ -586,16 +417,14 @@ class EvaluateConfig:
     predictor: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
-        for name, registry in (
-            ("controller", CONTROLLERS),
-            ("estimator", ESTIMATORS),
+        for name, choices in (
+            ("controller", _CONTROLLERS),
+            ("estimator", _ESTIMATORS),
             ("qos", QOS_POLICIES),
         ):
             value = getattr(self, name)
-            if value not in registry:
-                raise ValueError(f"{name} must be one of {', '.join(registry)}, got {value!r}")
-        from codesign_mb.network.qos import QosRequest
-
+            if value not in choices:
+                raise ValueError(f"{name} must be one of {', '.join(choices)}, got {value!r}")
         QosRequest(self.reliability, self.latency_steps)  # validates both, naming the field
         if self.belt_speed_mps is not None and not (
             math.isfinite(self.belt_speed_mps) and self.belt_speed_mps >= 0
@@ -614,9 +443,6 @@ class EvaluateConfig:
 
     def env_config(self) -> Any:
         """The plant config: ``ConveyorConfig`` from :attr:`env` and :attr:`belt_speed_mps`."""
-        from codesign_mb.config import from_mapping
-        from codesign_mb.plants.conveyor import ConveyorConfig
-
         data = dict(self.env)
         if self.belt_speed_mps is not None:
             data["belt_speed_mps"] = float(self.belt_speed_mps)
@@ -624,25 +450,18 @@ class EvaluateConfig:
 
     def components(self) -> tuple[Factory, Factory, Any]:
         """``(controller, estimator, qos_policy)`` for :func:`evaluate`."""
-        from codesign_mb.config import from_mapping
-
         kwargs: dict[str, Any] = {}
         if self.controller == "mpc":
-            from codesign_mb.control.mpc import MpcConfig
 
             kwargs["config"] = from_mapping(MpcConfig, self.mpc, where="mpc")
         elif self.mpc:
             raise ValueError(f"mpc options given but the controller is {self.controller!r}")
         if self.predictor and self.estimator != "predictor":
             raise ValueError(f"predictor options given but the estimator is {self.estimator!r}")
-        controller = component("controller", self.controller, **kwargs)
-        estimator = component(
-            "estimator",
-            self.estimator,
-            **(dict(self.predictor) if self.estimator == "predictor" else {}),
-        )
-        qos = _resolve(QOS_POLICIES[self.qos])(self.reliability, self.latency_steps)
-        return controller, estimator, qos
+        controller = registry.factory("controller", ComponentSpec(self.controller, options=kwargs))
+        options = dict(self.predictor) if self.estimator == "predictor" else {}
+        estimator = registry.factory("estimator", ComponentSpec(self.estimator, options=options))
+        return controller, estimator, StaticQos(self.reliability, self.latency_steps)
 
 
 def run_config(

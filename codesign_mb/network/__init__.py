@@ -8,7 +8,7 @@ from codesign_mb.network.link import (
     Packet,
     Reception,
 )
-from codesign_mb.network.qos import QosCost, QosRequest, reliability_cost
+from codesign_mb.network.qos import QosCost, QosPolicy, QosRequest, reliability_cost
 from codesign_mb.network.wrapper import LinkObservationWrapper, NetworkedPlant
 
 __all__ = [
@@ -20,6 +20,7 @@ __all__ = [
     "ObservationBuffer",
     "Packet",
     "QosCost",
+    "QosPolicy",
     "QosRequest",
     "Reception",
     "reliability_cost",

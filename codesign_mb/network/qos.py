@@ -1,12 +1,16 @@
-"""QoS requests and their cost: the reliability ``q`` and latency ``tau`` of paper.tex sec. 3."""
+"""QoS requests, their cost and the policy that chooses them (paper.tex sec. 3)."""
 
 from __future__ import annotations
 
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Protocol, runtime_checkable
 
-__all__ = ["QosCost", "QosRequest", "reliability_cost"]
+import numpy as np
+from numpy.typing import NDArray
+
+__all__ = ["QosCost", "QosPolicy", "QosRequest", "reliability_cost"]
 
 
 @dataclass(frozen=True, slots=True)
@@ -45,3 +49,20 @@ QosCost = Callable[[QosRequest], float]
 def reliability_cost(qos: QosRequest) -> float:
     """The paper's cost ``C(q) = q`` (``eq_robot``): requested reliability, latency free."""
     return qos.reliability
+
+
+@runtime_checkable
+class QosPolicy(Protocol):
+    """Chooses the QoS of the packet sent at ``t`` from what was held at ``t - 1``.
+
+    ``(q_t, tau_t) = pi(y_{t-1}, zeta_{t-1})`` (``eq_q_pol``, ``eq_t_pol``). The policy runs at
+    the edge: it sees the remote observation and its age, not the robot's estimate.
+    """
+
+    def reset(self, *, seed: int | None = None) -> None:
+        """Start an episode."""
+        ...
+
+    def request(self, observation: NDArray[np.float64], age: int) -> QosRequest:
+        """QoS for the next packet, given ``y_{t-1}`` and ``zeta_{t-1}``."""
+        ...

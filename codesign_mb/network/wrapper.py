@@ -2,17 +2,14 @@
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
+from typing import Any, Protocol, runtime_checkable
 
 import gymnasium as gym
 import numpy as np
 from numpy.typing import NDArray
 
 from codesign_mb.network.link import Link, Reception
-from codesign_mb.network.qos import QosCost, QosRequest, reliability_cost
-
-if TYPE_CHECKING:  # adaptation.base imports network.qos: a runtime import would be circular
-    from codesign_mb.adaptation.base import QosPolicy
+from codesign_mb.network.qos import QosCost, QosPolicy, QosRequest, reliability_cost
 
 __all__ = ["LinkObservationWrapper", "NetworkedPlant"]
 

@@ -59,6 +59,7 @@ from numpy.typing import NDArray
 
 from codesign_mb.robot.scene import BELT_HALF_WIDTH, BELT_SURFACE_Z, BELT_X, OBJECTS
 from codesign_mb.robot.simulator import ConveyorSimulator
+from codesign_mb.robot.render import OffscreenRenderer
 
 __all__ = [
     "BELT_PROFILES",
@@ -423,7 +424,6 @@ class ConveyorPickPlace(gym.Env):
         if self.render_mode != "rgb_array":
             return None
         if self._renderer is None:
-            from codesign_mb.robot.render import OffscreenRenderer
 
             cfg = self.config
             self._renderer = OffscreenRenderer(

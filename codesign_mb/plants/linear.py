@@ -40,7 +40,7 @@ import numpy as np
 import scipy.linalg
 from numpy.typing import ArrayLike, NDArray
 
-from codesign_mb.config import as_matrix
+from codesign_mb.core.config import as_matrix
 
 __all__ = [
     "CONTROL_PERIOD_S",

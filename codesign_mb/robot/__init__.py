@@ -11,7 +11,7 @@
 - :mod:`~codesign_mb.robot.simulator`: :class:`ConveyorSimulator`, physics + inner loop, one
   call per 40 ms control step; the Gymnasium task is :mod:`codesign_mb.plants.conveyor`.
 - :mod:`~codesign_mb.robot.render`: headless rendering (EGL or OSMesa).
-- :mod:`~codesign_mb.robot.bench`: :func:`bench_env`, control steps per second.
+- :mod:`~codesign_mb.bench.env`: :func:`bench_env`, control steps per second.
 """
 
 from codesign_mb.robot.model import GRIPPER_DOWN, PandaModel

@@ -5,7 +5,6 @@ paper.tex sec. 5 and 6.1; see each module for the equations (``eq_rate``, ``eq_l
 ``eq_lp``).
 """
 
-from codesign_mb.adaptation.rules import AgeTriggeredQos, CovarianceTriggeredQos
 from codesign_mb.wifi.allocators import (
     Allocator,
     ConvexAllocator,
@@ -13,7 +12,7 @@ from codesign_mb.wifi.allocators import (
     GreedyEdfAllocator,
     TickDemand,
 )
-from codesign_mb.wifi.cell import SharedChannel, WifiLink, generate_trace, rollout_shared
+from codesign_mb.wifi.cell import SharedChannel, WifiLink, generate_trace
 from codesign_mb.wifi.channel import ChannelConfig
 from codesign_mb.wifi.config import WifiConfig, make_allocator
 from codesign_mb.wifi.offline import AirtimePrices, OfflineResult, airtime_prices, offline_optimum
@@ -22,13 +21,11 @@ from codesign_mb.wifi.sim import Trace, replay
 from codesign_mb.wifi.traffic import TrafficConfig, drop_probability
 
 __all__ = [
-    "AgeTriggeredQos",
     "AirtimePrices",
     "Allocator",
     "ChannelConfig",
     "ConvexAllocator",
     "ConvexAllocatorConfig",
-    "CovarianceTriggeredQos",
     "GreedyEdfAllocator",
     "MacTiming",
     "OfflineResult",
@@ -46,6 +43,5 @@ __all__ = [
     "make_allocator",
     "offline_optimum",
     "replay",
-    "rollout_shared",
     "ru_plan",
 ]

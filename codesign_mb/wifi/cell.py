@@ -9,7 +9,8 @@ so a state is delivered with latency ``tau`` iff both its frames arrive by ``c_i
 that needs every frame captured before then, i.e. every other robot ``j`` must already have
 submitted its step whose capture precedes ``c_i(t)``. Stepping the robots round-robin in
 order of their offsets (:attr:`SharedChannel.step_order`) guarantees it, and
-:func:`rollout_shared` does exactly that; a robot that runs ahead raises ``RuntimeError``.
+:func:`codesign_mb.rollout.rollout_shared` does exactly that; a robot that runs ahead raises
+``RuntimeError``.
 Because a camera frame needs airtime, ``tau = 0`` cannot be met on this link and is rejected.
 
 Channel process
@@ -24,7 +25,6 @@ from __future__ import annotations
 from collections import defaultdict
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -41,7 +41,6 @@ __all__ = [
     "SharedChannel",
     "WifiLink",
     "generate_trace",
-    "rollout_shared",
 ]
 
 
@@ -372,79 +371,3 @@ class _NullEngine:
 
     def drop_station(self, station: int) -> None:
         return None
-
-
-def rollout_shared(
-    envs: Sequence[Any],
-    estimators: Sequence[Any],
-    controllers: Sequence[Any],
-    *,
-    channel: SharedChannel,
-    seed: int,
-    max_steps: int | None = None,
-) -> list[pd.DataFrame]:
-    """Run N robots in lockstep on one channel; one per-step table per robot (like ``rollout``).
-
-    ``envs[i]`` must be a :class:`~codesign_mb.network.LinkObservationWrapper` around robot
-    ``i``'s plant whose link is ``channel.links[i]``. Robots are stepped in
-    ``channel.step_order``; a robot whose episode ends leaves the channel.
-
-    Seeds: the channel is reset with ``seed``; robot ``i`` gets the ``i``-th stream spawned
-    from it (env, link drops and QoS policy, via the wrapper; controller).
-    """
-    n = channel.n
-    if not (len(envs) == len(estimators) == len(controllers) == n):
-        raise ValueError(
-            f"need one env, estimator and controller per station ({n}), got "
-            f"{len(envs)}, {len(estimators)}, {len(controllers)}"
-        )
-    for i, env in enumerate(envs):
-        if getattr(env, "link", None) is not channel.links[i]:
-            raise ValueError(f"envs[{i}] must be wrapped with channel.links[{i}]")
-    root = np.random.SeedSequence(seed)
-    chan_ss, *robot_ss = root.spawn(n + 1)
-    channel.reset(seed=int(chan_ss.generate_state(1)[0]))
-    seeds = [int(s.generate_state(1)[0]) for s in robot_ss]
-    obs: list[Any] = [None] * n
-    info: list[dict[str, Any]] = [{}] * n
-    estimate: list[Any] = [None] * n
-    for i in channel.step_order:
-        obs[i], info[i] = envs[i].reset(seed=seeds[i])
-        controllers[i].reset(seed=seeds[i])
-        estimate[i] = estimators[i].reset(obs[i])
-    rows: list[list[dict[str, Any]]] = [[] for _ in range(n)]
-    done = [False] * n
-    recorded = ("qos_reliability", "qos_latency_steps", "qos_cost", "delivered", "age")
-    t = 0
-    while not all(done) and (max_steps is None or t < max_steps):
-        for i in channel.step_order:
-            if done[i]:
-                continue
-            env = envs[i]
-            action = np.asarray(controllers[i].act(estimate[i]))
-            row: dict[str, Any] = {"t": t, "robot": i}
-            row.update({k: info[i][k] for k in recorded})
-            remote = env.remote_slice
-            row["estimation_error"] = float(
-                np.linalg.norm(np.asarray(estimate[i])[remote] - info[i]["remote_true"])
-            )
-            obs[i], reward, terminated, truncated, info[i] = env.step(action)
-            row["reward"] = float(reward)
-            row.update(
-                {
-                    k: v
-                    for k, v in info[i].items()
-                    if k not in row
-                    and k not in recorded
-                    and np.ndim(v) == 0
-                    and not isinstance(v, str)
-                }
-            )
-            rows[i].append(row)
-            if terminated or truncated:
-                done[i] = True
-                channel.close(i)
-            else:
-                estimate[i] = estimators[i].estimate(obs[i], action)
-        t += 1
-    return [pd.DataFrame(r) for r in rows]

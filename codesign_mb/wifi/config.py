@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from codesign_mb.core import registry
 from codesign_mb.wifi.allocators import (
     Allocator,
     ConvexAllocator,
@@ -16,7 +17,8 @@ from codesign_mb.wifi.traffic import TrafficConfig
 
 __all__ = ["SCHEDULERS", "WifiConfig", "make_allocator"]
 
-SCHEDULERS = ("greedy", "convex", "convex-cvxpy")
+SCHEDULERS = registry.kinds("allocator")
+"""Allocator kinds of the component registry."""
 
 
 @dataclass(frozen=True)
@@ -45,17 +47,31 @@ class WifiConfig:
         self.traffic.period_ticks(self.mac.tick_us)  # validates period_ms against tick_us
 
 
+def greedy_allocator(config: WifiConfig, n_stations: int) -> Allocator:
+    """The paper's greedy earliest-deadline scheduler for the cell of ``config``."""
+    return GreedyEdfAllocator(config.phy.bandwidth_mhz)
+
+
+def convex_allocator(config: WifiConfig, n_stations: int, *, hot_path: bool = True) -> Allocator:
+    """The convex RU allocator for ``n_stations`` (OSQP hot path, or its cvxpy model)."""
+    return ConvexAllocator(
+        ConvexAllocatorConfig(
+            bandwidth_mhz=config.phy.bandwidth_mhz,
+            n_stations=max(n_stations, 1),
+            hot_path=hot_path,
+        )
+    )
+
+
+def convex_cvxpy_allocator(config: WifiConfig, n_stations: int) -> Allocator:
+    """The convex RU allocator solved through its cvxpy model (the reference path)."""
+    return convex_allocator(config, n_stations, hot_path=False)
+
+
 def make_allocator(config: WifiConfig, n_stations: int, scheduler: str | None = None) -> Allocator:
     """A fresh allocator of ``scheduler`` (default ``config.scheduler``) for ``n_stations``."""
     name = scheduler or config.scheduler
-    if name == "greedy":
-        return GreedyEdfAllocator(config.phy.bandwidth_mhz)
-    if name in ("convex", "convex-cvxpy"):
-        return ConvexAllocator(
-            ConvexAllocatorConfig(
-                bandwidth_mhz=config.phy.bandwidth_mhz,
-                n_stations=max(n_stations, 1),
-                hot_path=name == "convex",
-            )
-        )
-    raise ValueError(f"scheduler must be one of {SCHEDULERS}, got {name!r}")
+    if name not in SCHEDULERS:
+        raise ValueError(f"scheduler must be one of {SCHEDULERS}, got {name!r}")
+    allocator: Allocator = registry.create("allocator", name, config, n_stations)
+    return allocator

@@ -30,7 +30,7 @@ import numpy as np
 import pandas as pd
 from numpy.typing import NDArray
 
-from codesign_mb.config import from_mapping, to_mapping
+from codesign_mb.core.config import from_mapping, to_mapping
 from codesign_mb.wifi.allocators import Allocator, TickDemand
 from codesign_mb.wifi.config import WifiConfig, make_allocator
 

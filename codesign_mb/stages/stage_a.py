@@ -24,9 +24,8 @@ import gymnasium as gym
 import numpy as np
 from stable_baselines3.common.callbacks import BaseCallback, CallbackList
 
-from codesign_mb.pipeline.components import ComponentSpec, build
-from codesign_mb.pipeline.plants import PlantSpec, make_plant
-from codesign_mb.pipeline.training import (
+from codesign_mb.core.registry import ComponentSpec, PlantSpec, build, make_plant
+from codesign_mb.stages.training import (
     Progress,
     SacSpec,
     TrainingState,
@@ -38,6 +37,7 @@ from codesign_mb.pipeline.training import (
     train_sac_in_chunks,
     write_output,
 )
+from codesign_mb.control.sac import SacController
 
 __all__ = ["StageAConfig", "add_demonstrations", "evaluate_ideal", "train_stage_a"]
 
@@ -429,7 +429,6 @@ def train_stage_a(
 
     Returns the summary written to ``out_dir/training.json`` (steps, wall time, evaluation).
     """
-    from codesign_mb.control.sac import SacController
 
     work_dir = Path(work_dir)
     launched = time.perf_counter()

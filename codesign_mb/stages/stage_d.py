@@ -23,10 +23,15 @@ from pathlib import Path
 from typing import Any
 
 from codesign_mb.adaptation.learned import LearnedQosPolicy
+from codesign_mb.core.registry import (
+    ComponentSpec,
+    PlantSpec,
+    build,
+    make_plant,
+    resolve_checkpoint,
+)
 from codesign_mb.estimation.learned import load_estimator
-from codesign_mb.pipeline.components import ComponentSpec, build, resolve_checkpoint
-from codesign_mb.pipeline.plants import PlantSpec, make_plant
-from codesign_mb.pipeline.stage_b import (
+from codesign_mb.stages.stage_b import (
     DelayDistribution,
     EpisodeData,
     EstimatorTraining,
@@ -37,8 +42,10 @@ from codesign_mb.pipeline.stage_b import (
     fit_estimator,
     position_slice,
 )
-from codesign_mb.pipeline.stage_c import StageCConfig, train_stage_c
-from codesign_mb.pipeline.training import Progress, no_progress, seeded_torch, write_json
+from codesign_mb.stages.stage_c import StageCConfig, train_stage_c
+from codesign_mb.stages.training import Progress, no_progress, seeded_torch, write_json
+from codesign_mb.core.config import to_mapping
+from codesign_mb.core.results import package_version
 
 __all__ = ["StageDConfig", "train_stage_d"]
 
@@ -117,8 +124,6 @@ def train_stage_d(
     command: str | None = None,
 ) -> dict[str, Any]:
     """Run the synthesis; write ``<kind>.pt``, ``qos/`` and ``training.json`` to ``out_dir``."""
-    from codesign_mb.config import to_mapping
-    from codesign_mb.evaluation.results import package_version
 
     out_dir, work_dir = Path(out_dir), Path(work_dir)
     work_dir.mkdir(parents=True, exist_ok=True)

@@ -27,6 +27,7 @@ from codesign_mb.evaluation.evaluate import (
     run_jobs,
     summarize,
 )
+from codesign_mb.core.results import atomic_write
 
 __all__ = ["FigCnConfig", "fig_cn_points", "plot_fig_cn", "run_fig_cn"]
 
@@ -182,7 +183,6 @@ def plot_fig_cn(table: pd.DataFrame, path: str | Path) -> Path:
     matplotlib.use("Agg", force=False)
     import matplotlib.pyplot as plt
 
-    from codesign_mb.evaluation.results import atomic_write
 
     path = Path(path)
     speeds = sorted(table["belt_speed_mps"].unique())

@@ -1,7 +1,7 @@
 """``codesign report``: the paper's Table I and Figs. 4-6 from a results folder, both pipelines.
 
 The report reads the tables of one results folder (written by
-:func:`~codesign_mb.evaluation.results.write_results`) and renders, for each known table
+:func:`~codesign_mb.core.results.write_results`) and renders, for each known table
 that is present, a PNG figure and a section of ``report.md``; absent tables are listed as
 skipped. The learned pipeline (the paper's) and its model-based counterpart are shown side by
 side wherever the table holds both (column ``pipeline``).
@@ -31,14 +31,14 @@ lines), ``policy``, ``row``, ``controller``, ``estimator``, ``qos_policy``, ``qo
     required: ``latency_steps`` (tau in control periods of 40 ms) and success; optional:
     ``belt_speed_mps`` (one panel each), ``sweep`` (rows ``"reliability"`` are drawn in a
     second row of panels versus ``reliability``; other rows versus latency), label columns.
-    :func:`~codesign_mb.evaluation.figures_cn.run_fig_cn`'s table fits.
+    :func:`~codesign_mb.studies.fig_cn.run_fig_cn`'s table fits.
 
 ``fig_lat`` -- Fig. 5: the requested reliability over one episode
     required: ``t`` (step) and ``qos_reliability`` (requested ``q_t``); optional: ``episode``
     (several episodes: a successful one is shown, picked with the report seed),
     ``delivered`` (bool), ``lifted`` (bool; the first lift is marked), ``success`` (bool),
     label columns (one panel per combination). A
-    :func:`~codesign_mb.evaluation.rollout.rollout` frame plus ``pipeline`` fits.
+    :func:`~codesign_mb.rollout.loop.rollout` frame plus ``pipeline`` fits.
 
 ``fig_wifi`` (alias ``wifi_capacity``) -- Fig. 6: success versus the number of robots sharing
     a 40 MHz WiFi 6 channel
@@ -46,7 +46,7 @@ lines), ``policy``, ``row``, ``controller``, ``estimator``, ``qos_policy``, ``qo
     ``mean_requested_reliability``, label columns (e.g. ``pipeline`` or ``policy`` "static
     QoS" / "dynamic QoS", ``scheduler``, ``channel``). ``codesign wifi capacity``'s table fits.
 
-Sweeps -- any table written by :func:`~codesign_mb.evaluation.sweep.run_sweep` (metadata
+Sweeps -- any table written by :func:`~codesign_mb.studies.sweep.run_sweep` (metadata
 ``extra.kind == "sweep"``): the mean of ``success_rate`` (or ``--metric``) over replicates
 versus ``n_robots``, one panel per belt speed, one line per pipeline.
 """
@@ -64,7 +64,8 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from codesign_mb.evaluation.results import ResultsDir, atomic_write, package_version
+from codesign_mb.core.results import ResultsDir, atomic_write, package_version
+from codesign_mb.core.stats import wilson_interval
 
 __all__ = [
     "COLUMN_ALIASES",
@@ -240,21 +241,6 @@ def labels_of(frame: pd.DataFrame, *, exclude: Sequence[str] = ()) -> list[str]:
     return [c for c in LABEL_COLUMNS if c in frame.columns and c not in exclude]
 
 
-def _wilson(k: int, n: int, confidence: float) -> tuple[float, float]:
-    # Same formula as codesign_mb.evaluation.evaluate.wilson_interval (kept local: the
-    # report must not import the simulators).
-    if n <= 0:
-        return (math.nan, math.nan)
-    from statistics import NormalDist
-
-    z = NormalDist().inv_cdf(0.5 + confidence / 2.0)
-    p = k / n
-    denom = 1.0 + z * z / n
-    centre = (p + z * z / (2 * n)) / denom
-    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / denom
-    return (max(0.0, centre - half), min(1.0, centre + half))
-
-
 def success_summary(
     frame: pd.DataFrame, by: Sequence[str], *, confidence: float = 0.95
 ) -> pd.DataFrame:
@@ -294,7 +280,7 @@ def success_summary(
                 n = 0
                 rate = float(group["success_rate"].mean())
             k = round(rate * n)
-        low, high = _wilson(k, n, confidence) if n else (math.nan, math.nan)
+        low, high = wilson_interval(k, n, confidence) if n else (math.nan, math.nan)
         row.update(trials=n, success_rate=rate, ci_low=low, ci_high=high)
         for c in extra:
             row[c] = float(group[c].astype(float).mean())
@@ -718,7 +704,7 @@ def build_report(
     Parameters
     ----------
     results_dir:
-        A folder written by :func:`~codesign_mb.evaluation.results.write_results`.
+        A folder written by :func:`~codesign_mb.core.results.write_results`.
     out_dir:
         Where the figures and ``report.md`` go; default ``<results_dir>/report``.
     config:
@@ -777,7 +763,7 @@ def _markdown(results: ResultsDir, sections: list[Section], skipped: dict[str, s
         parts += [f"- `{name}`: {reason}" for name, reason in skipped.items()]
         parts += [
             "",
-            "Table names and columns are documented in `codesign_mb.evaluation.report`.",
+            "Table names and columns are documented in `codesign_mb.studies.report`.",
             "",
         ]
     if results.names:

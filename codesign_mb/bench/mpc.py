@@ -17,6 +17,16 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
+from codesign_mb.adaptation.base import StaticQos
+from codesign_mb.control.mpc import MpcConfig
+from codesign_mb.control.mpc import MpcController
+from codesign_mb.control.mpc import MpcQp
+from codesign_mb.estimation.base import PassThroughEstimator
+from codesign_mb.evaluation.evaluate import episode_seeds
+from codesign_mb.network.link import BernoulliLink
+from codesign_mb.network.wrapper import LinkObservationWrapper
+from codesign_mb.plants.conveyor import ConveyorConfig, ConveyorPickPlace
+from codesign_mb.rollout import rollout
 
 __all__ = ["bench_mpc", "record_problems"]
 
@@ -33,14 +43,6 @@ def record_problems(
     Returns the per-episode lists of parameter vectors and what is needed to rebuild the QP
     (``config``, ``dt``, ``max_speed_mps``).
     """
-    from codesign_mb.adaptation.base import StaticQos
-    from codesign_mb.control.mpc import MpcController
-    from codesign_mb.estimation.base import PassThroughEstimator
-    from codesign_mb.evaluation.evaluate import episode_seeds
-    from codesign_mb.evaluation.rollout import rollout
-    from codesign_mb.network.link import BernoulliLink
-    from codesign_mb.network.wrapper import LinkObservationWrapper
-    from codesign_mb.plants.conveyor import ConveyorConfig, ConveyorPickPlace
 
     problems: list[list[NDArray[np.float64]]] = []
     qp_args: dict[str, Any] = {}
@@ -70,7 +72,6 @@ def _time_solver(
     solver: str,
     repeats: int,
 ) -> dict[str, Any]:
-    from codesign_mb.control.mpc import MpcQp
 
     config = dataclasses.replace(qp_args["config"], solver=solver)
     qp = MpcQp(config, dt=qp_args["dt"], max_speed_mps=qp_args["max_speed_mps"])
@@ -137,7 +138,6 @@ def bench_mpc(
         (median <= 2 ms, p99 <= 10 ms), the number of recorded problems, and ``solvers``: the
         figures of every solver (whole solve and the solver call alone).
     """
-    from codesign_mb.control.mpc import MpcConfig
 
     if isinstance(repeats, bool) or int(repeats) != repeats or repeats < 1:
         raise ValueError(f"repeats must be an integer >= 1, got {repeats!r}")

@@ -1,7 +1,7 @@
 """Table I (``tab_p``), the head-to-head table and Fig. 5 (``fig_lat``) of paper.tex, any pipeline.
 
 A table is a list of :class:`TableRow` — a name and a ``{controller, estimator, qos}`` triple
-of :class:`~codesign_mb.pipeline.components.ComponentSpec` — evaluated on one or more plants
+of :class:`~codesign_mb.core.registry.ComponentSpec` — evaluated on one or more plants
 (:class:`TablePlant`, e.g. the conveyor at 0.2 and 0.6 m/s and with a variable belt) on the
 same seeded episodes (every row and plant gets the episode seeds of ``seed``). All episodes of
 all rows and plants share one pool of worker processes
@@ -58,15 +58,17 @@ import numpy as np
 import pandas as pd
 from numpy.typing import ArrayLike, NDArray
 
-from codesign_mb.config import from_mapping
-from codesign_mb.pipeline.components import (
+from codesign_mb.core.config import from_mapping
+from codesign_mb.core.registry import (
     ComponentSpec,
+    PlantSpec,
     build,
     factory,
+    make_plant,
     models_dir,
+    plant_factory,
     resolve_checkpoint,
 )
-from codesign_mb.pipeline.plants import PlantSpec, make_plant, plant_factory
 
 __all__ = [
     "CPU_COLUMNS",
@@ -128,7 +130,7 @@ class TablePlant:
     label:
         Shown in the ``plant`` column and the figures, e.g. ``"0.2 m/s"``.
     name, options:
-        The :class:`~codesign_mb.pipeline.plants.PlantSpec`.
+        The :class:`~codesign_mb.core.registry.PlantSpec`.
     """
 
     label: str
@@ -567,7 +569,7 @@ def _timed_factory(role: str, spec: ComponentSpec) -> Any:
     from codesign_mb.evaluation.evaluate import Factory
 
     return Factory(
-        "codesign_mb.pipeline.table:_timed_component",
+        "codesign_mb.studies.table:_timed_component",
         {"role": role, "inner": factory(role, spec)},
         takes_env=True,
     )
@@ -763,9 +765,9 @@ def qos_timeline(
 
     With a :class:`TablePlant`, only the episodes of that plant (column ``plant``) count.
     """
-    from codesign_mb.evaluation.rollout import rollout
     from codesign_mb.network.link import BernoulliLink
     from codesign_mb.network.wrapper import LinkObservationWrapper
+    from codesign_mb.rollout import rollout
 
     if episodes.empty:
         return None
@@ -904,7 +906,7 @@ def plot_pareto(summary: pd.DataFrame, path: str | Path, *, title: str = "") -> 
 
 
 def _save(fig: Any, path: str | Path) -> Path:
-    from codesign_mb.evaluation.results import atomic_write
+    from codesign_mb.core.results import atomic_write
 
     path = Path(path)
     with atomic_write(path) as fh:

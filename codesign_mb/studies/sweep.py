@@ -23,7 +23,7 @@ The driver stores each finished trial as one small JSON file
 hashes everything the row depends on (scenario, its params, grid point, seed), so rerunning
 an interrupted sweep only computes the missing trials, and changing a parameter never reuses
 stale rows. The table is always assembled from the stored rows, in grid order, and written
-with :func:`~codesign_mb.evaluation.results.write_results` as ``<out_dir>/<name>.*``.
+with :func:`~codesign_mb.core.results.write_results` as ``<out_dir>/<name>.*``.
 
 Scenarios
 ---------
@@ -40,14 +40,14 @@ defining:
     The pipeline names the scenario accepts; ``SweepConfig.pipelines = ()`` means
     ``DEFAULT_PIPELINES`` if the module defines it, else all.
 
-Built in: ``"linear"`` (:mod:`codesign_mb.evaluation.sweep_linear`, LQG over a Bernoulli
-link, milliseconds per trial) and ``"conveyor"`` (:mod:`codesign_mb.pipeline.sweep`: the
+Built in: ``"linear"`` (:mod:`codesign_mb.studies.sweep_linear`, LQG over a Bernoulli
+link, milliseconds per trial) and ``"conveyor"`` (:mod:`codesign_mb.studies.sweep_conveyor`: the
 MuJoCo pick-and-place with the pipelines of ``codesign table``, seconds per trial).
 
 Ray Tune
 --------
 :func:`tune_hyperparameters` runs a training-hyperparameter search with Ray Tune around any
-``trainable(config: dict) -> dict`` (e.g. a training stage of :mod:`codesign_mb.pipeline`).
+``trainable(config: dict) -> dict`` (e.g. a training stage of :mod:`codesign_mb.stages`).
 """
 
 from __future__ import annotations
@@ -66,8 +66,10 @@ from typing import Any, Literal
 import numpy as np
 import pandas as pd
 
-from codesign_mb.config import from_mapping, to_mapping
-from codesign_mb.evaluation.results import atomic_write, to_jsonable, write_results
+from codesign_mb.core.config import from_mapping, to_mapping
+from codesign_mb.core.results import atomic_write, to_jsonable, write_results
+from codesign_mb.core.seeds import episode_seeds
+from codesign_mb.evaluation import pool
 
 __all__ = [
     "GRID_COLUMNS",
@@ -79,7 +81,6 @@ __all__ = [
     "execute_trial",
     "plan_sweep",
     "run_sweep",
-    "trial_seeds",
     "tune_hyperparameters",
 ]
 
@@ -87,8 +88,8 @@ Backend = Literal["serial", "local", "ray"]
 BACKENDS: tuple[str, ...] = ("serial", "local", "ray")
 
 SCENARIOS: dict[str, str] = {
-    "linear": "codesign_mb.evaluation.sweep_linear",
-    "conveyor": "codesign_mb.pipeline.sweep",
+    "linear": "codesign_mb.studies.sweep_linear",
+    "conveyor": "codesign_mb.studies.sweep_conveyor",
 }
 """Scenario name -> module defining ``run_trial``, ``Params`` and ``PIPELINES``."""
 
@@ -247,12 +248,6 @@ def load_scenario(scenario: str) -> ModuleType:
     return module
 
 
-def trial_seeds(seed: int, n_seeds: int) -> list[int]:
-    """Replicate seeds: one 32-bit integer per ``SeedSequence(seed).spawn(n_seeds)`` child."""
-    children = np.random.SeedSequence(seed).spawn(n_seeds)
-    return [int(child.generate_state(1, dtype=np.uint32)[0]) for child in children]
-
-
 def plan_sweep(config: SweepConfig) -> list[tuple[TrialConfig, int]]:
     """The trials of ``config`` in grid order, with their seeds (validates the scenario).
 
@@ -268,7 +263,7 @@ def plan_sweep(config: SweepConfig) -> list[tuple[TrialConfig, int]]:
             f"for scenario {config.scenario!r}; expected one of {', '.join(known)}"
         )
     params = from_mapping(module.Params, config.params, where="params")
-    seeds = trial_seeds(config.seed, config.n_seeds)
+    seeds = episode_seeds(config.seed, config.n_seeds)
     return [
         (TrialConfig(config.scenario, p, v, n, r, params), seeds[r])
         for p in pipelines
@@ -361,46 +356,11 @@ class TrialStore:
 Pending = list[tuple[str, TrialConfig, int]]
 
 
-def _iter_serial(pending: Pending) -> Iterator[tuple[str, dict[str, Scalar]]]:
-    for key, trial, seed in pending:
-        yield key, execute_trial(trial, seed)
-
-
-def _init_worker() -> None:
-    """Worker initializer: one BLAS/OpenMP thread per worker (``single_threaded_worker``),
-    and Ctrl-C (sent to the whole process group) ends a worker quietly; the driver reports
-    the interruption once."""
-    import signal
-
-    from codesign_mb.evaluation.evaluate import single_threaded_worker
-
-    single_threaded_worker()
-    signal.signal(signal.SIGINT, _exit_interrupted)
-
-
-def _exit_interrupted(signum: int, frame: Any) -> None:
-    raise SystemExit(130)
-
-
 def _iter_local(pending: Pending, workers: int) -> Iterator[tuple[str, dict[str, Scalar]]]:
-    import multiprocessing
-    from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
-
-    # spawn: forking a process holding threads (torch, OpenMP, Ray) is unsafe.
-    pool = ProcessPoolExecutor(
-        max_workers=workers,
-        mp_context=multiprocessing.get_context("spawn"),
-        initializer=_init_worker,
-    )
-    try:
-        futures = {pool.submit(execute_trial, trial, seed): key for key, trial, seed in pending}
-        remaining = set(futures)
-        while remaining:
-            done, remaining = wait(remaining, return_when=FIRST_COMPLETED)
-            for future in sorted(done, key=lambda f: futures[f]):
-                yield futures[future], future.result()
-    finally:
-        pool.shutdown(wait=False, cancel_futures=True)
+    tasks = [(trial, seed) for _, trial, seed in pending]
+    stream = pool.imap(execute_trial, tasks, workers=workers)
+    for i, row in stream:
+        yield pending[i][0], row
 
 
 def _iter_ray(
@@ -505,7 +465,7 @@ def run_sweep(
     if not pending:
         stream: Iterator[tuple[str, dict[str, Scalar]]] = iter(())
     elif backend == "serial":
-        stream = _iter_serial(pending)
+        stream = _iter_local(pending, 1)
     elif backend == "local":
         stream = _iter_local(pending, n_workers)
     else:
@@ -562,7 +522,7 @@ def tune_hyperparameters(
     ----------
     trainable:
         A picklable function of one config dict (e.g. a training stage of
-        :mod:`codesign_mb.pipeline` with its hyperparameters and ``"seed"``) returning its final
+        :mod:`codesign_mb.stages` with its hyperparameters and ``"seed"``) returning its final
         metrics. It is wrapped so it reports them to Tune once; it need not know about Ray.
     param_space:
         Tune search space (``tune.grid_search``, ``tune.choice``, ``tune.loguniform``, plain

@@ -22,6 +22,10 @@ from codesign_mb.wifi.allocators import (
     GreedyEdfAllocator,
     TickDemand,
 )
+from codesign_mb.wifi.cell import generate_trace
+from codesign_mb.wifi.channel import ChannelConfig
+from codesign_mb.wifi.config import WifiConfig
+from codesign_mb.wifi.sim import replay
 
 __all__ = ["STATION_COUNTS", "bench_allocators", "recorded_demands"]
 
@@ -43,10 +47,6 @@ class _Recorder:
 
 def recorded_demands(n_stations: int, *, steps: int, seed: int) -> list[TickDemand]:
     """UL demands of a greedy replay of a static-QoS trace (staggered capture, MCS 3)."""
-    from codesign_mb.wifi.cell import generate_trace
-    from codesign_mb.wifi.channel import ChannelConfig
-    from codesign_mb.wifi.config import WifiConfig
-    from codesign_mb.wifi.sim import replay
 
     config = WifiConfig(channel=ChannelConfig(fixed_mcs=3))
     trace = generate_trace(config, n_stations, steps=steps, seed=seed)

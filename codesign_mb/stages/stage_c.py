@@ -16,7 +16,7 @@ estimator" into a Gymnasium env whose agent is the QoS policy. One agent step is
 
 The controller/estimator pair is any :class:`~codesign_mb.control.Controller` and
 :class:`~codesign_mb.estimation.Estimator`, given by configuration
-(:class:`~codesign_mb.pipeline.components.ComponentSpec`): the learned stack (SAC + MLP), the
+(:class:`~codesign_mb.core.registry.ComponentSpec`): the learned stack (SAC + MLP), the
 model-based one (MPC + predictor) or a mix reuse this trainer unchanged.
 
 The task loss ``L`` (``StageCConfig.env.loss``) is one of
@@ -53,12 +53,11 @@ from codesign_mb.adaptation.learned import (
     QosInterface,
     make_features,
 )
+from codesign_mb.core.registry import ComponentSpec, PlantSpec, build, make_plant
 from codesign_mb.network.link import BernoulliLink, Link
 from codesign_mb.network.qos import QosCost, QosRequest, reliability_cost
 from codesign_mb.network.wrapper import LinkObservationWrapper
-from codesign_mb.pipeline.components import ComponentSpec, build
-from codesign_mb.pipeline.plants import PlantSpec, make_plant
-from codesign_mb.pipeline.training import (
+from codesign_mb.stages.training import (
     Progress,
     SacSpec,
     TrainingState,
@@ -69,6 +68,7 @@ from codesign_mb.pipeline.training import (
     train_sac_in_chunks,
     write_output,
 )
+from codesign_mb.core.registry import resolve_checkpoint
 
 __all__ = [
     "LOSSES",
@@ -563,7 +563,6 @@ def train_stage_c(
     if model is None:
         state = TrainingState(stage=stage, total_steps=config.total_steps)
         if config.warm_start:
-            from codesign_mb.pipeline.components import resolve_checkpoint
 
             source = resolve_checkpoint(config.warm_start)
             model = SAC.load(source / "model.zip", env=env, device="cpu")

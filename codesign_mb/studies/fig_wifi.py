@@ -6,11 +6,11 @@ rate is the fraction of its robots whose task succeeded (``info["success"]`` at 
 The *capacity* of a curve is the largest ``N`` up to which every simulated count has a mean
 success of at least ``success_target`` (95 %).
 
-The pipelines are configuration: a plant (:class:`~codesign_mb.pipeline.plants.PlantSpec`)
+The pipelines are configuration: a plant (:class:`~codesign_mb.core.registry.PlantSpec`)
 and, per pipeline, a controller, an estimator and a QoS policy
-(:class:`~codesign_mb.pipeline.components.ComponentSpec`), so learned pipelines (SAC, MLP
+(:class:`~codesign_mb.core.registry.ComponentSpec`), so learned pipelines (SAC, MLP
 estimator, learned QoS) plug in by naming their kinds and checkpoints. Besides the kinds of
-:mod:`codesign_mb.pipeline.components`, two model-based QoS rules of
+:mod:`codesign_mb.core.registry`, two model-based QoS rules of
 :mod:`codesign_mb.adaptation.rules` are known here: ``"age_triggered"`` (``options``:
 ``low``, ``high``, ``max_age_steps``, ``latency_steps``) and ``"covariance_triggered"``
 (``options``: ``threshold_m``, ``low``, ``high``, ``latency_steps``, ``lift_margin_m``,
@@ -41,7 +41,7 @@ ms period (the greedy scheduler delivers every frame to 6 robots, 80 % to 7, 15 
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Callable, Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -49,10 +49,21 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from codesign_mb.adaptation.rules import AgeTriggeredQos, CovarianceTriggeredQos
+from codesign_mb.adaptation.rules import AgeTriggeredQos
+from codesign_mb.evaluation import pool
+from codesign_mb.rollout.compose import covariance_rule
 from codesign_mb.wifi.channel import ChannelConfig
 from codesign_mb.wifi.config import SCHEDULERS, WifiConfig
 from codesign_mb.wifi.phy import MacTiming, PhyConfig
+from codesign_mb.core.config import from_mapping
+from codesign_mb.core.registry import ComponentSpec
+from codesign_mb.core.registry import PlantSpec
+from codesign_mb.core.registry import build
+from codesign_mb.core.registry import make_plant
+from codesign_mb.core.results import atomic_write
+from codesign_mb.network.wrapper import LinkObservationWrapper
+from codesign_mb.rollout import rollout_shared
+from codesign_mb.wifi.cell import SharedChannel
 
 __all__ = [
     "CHANNEL_PRESETS",
@@ -70,7 +81,6 @@ __all__ = [
 
 
 def _component(kind: str, options: Mapping[str, Any] | None = None) -> Any:
-    from codesign_mb.pipeline.components import ComponentSpec
 
     return ComponentSpec(kind=kind, options=dict(options or {}))
 
@@ -86,8 +96,6 @@ class PipelineConfig:
     )
 
     def __post_init__(self) -> None:
-        from codesign_mb.config import from_mapping
-        from codesign_mb.pipeline.components import ComponentSpec
 
         for name in ("controller", "estimator", "qos"):
             value = getattr(self, name)
@@ -144,7 +152,7 @@ STACKS: dict[str, dict[str, Any]] = {
 
 QOS_RULES: dict[str, Callable[..., Any]] = {
     "age_triggered": lambda env, **options: AgeTriggeredQos(**options),
-    "covariance_triggered": CovarianceTriggeredQos.from_env,
+    "covariance_triggered": covariance_rule,
 }
 """QoS kinds known to the capacity study on top of ``pipeline.components.QOS_KINDS``."""
 
@@ -223,8 +231,6 @@ class CapacityConfig:
     workers: int = 1
 
     def __post_init__(self) -> None:
-        from codesign_mb.config import from_mapping
-        from codesign_mb.pipeline.plants import PlantSpec
 
         def counts(name: str, value: Any) -> tuple[int, ...]:
             out = tuple(int(n) for n in value)
@@ -289,7 +295,6 @@ class CapacityConfig:
 def _build(role: str, spec: Any, env: Any) -> Any:
     if role == "qos" and spec.kind in QOS_RULES:
         return QOS_RULES[spec.kind](env, **dict(spec.options))
-    from codesign_mb.pipeline.components import build
 
     return build(role, spec, env)
 
@@ -304,9 +309,6 @@ def run_point(
     trial: int,
 ) -> dict[str, Any]:
     """One trial of one point: N robots, one episode; returns success and network figures."""
-    from codesign_mb.network.wrapper import LinkObservationWrapper
-    from codesign_mb.pipeline.plants import make_plant
-    from codesign_mb.wifi.cell import SharedChannel, rollout_shared
 
     pipeline = config.pipelines[pipeline_name]
     channel = SharedChannel(CHANNEL_PRESETS[channel_name], n_robots, scheduler=scheduler)
@@ -359,22 +361,25 @@ def run_capacity(
         results: Iterable[dict[str, Any]] = (run_point(config, **kw) for kw in points)
         rows = list(progress(results) if progress is not None else results)
         return pd.DataFrame(rows)
-    from concurrent.futures import ProcessPoolExecutor
-    from multiprocessing import get_context
-
     # Largest points first keeps both workers busy to the end; rows go back in grid order.
     order = sorted(range(len(points)), key=lambda j: -points[j]["n_robots"])
-    from codesign_mb.evaluation.evaluate import single_threaded_worker
-
-    with ProcessPoolExecutor(
-        config.workers, mp_context=get_context("spawn"), initializer=single_threaded_worker
-    ) as pool:
-        mapped = pool.map(_run_point_kwargs, [(config, points[j]) for j in order])
-        done = list(progress(mapped) if progress is not None else mapped)
+    stream = pool.imap(
+        _run_point_kwargs, [((config, points[j]),) for j in order], workers=config.workers
+    )
     ordered: list[dict[str, Any]] = [{}] * len(points)
-    for j, row in zip(order, done, strict=True):
-        ordered[j] = row
+    rows = (row for _, row in _in_grid_order(stream, order, ordered))
+    for _ in progress(rows) if progress is not None else rows:
+        pass
     return pd.DataFrame(ordered)
+
+
+def _in_grid_order(
+    stream: Iterable[tuple[int, dict[str, Any]]], order: list[int], out: list[dict[str, Any]]
+) -> Iterator[tuple[int, dict[str, Any]]]:
+    # Task i computed point order[i]: put its row in place, pass it on (for the progress bar).
+    for i, row in stream:
+        out[order[i]] = row
+        yield order[i], row
 
 
 def capacity_table(results: pd.DataFrame, *, success_target: float = 0.95) -> pd.DataFrame:
@@ -416,7 +421,6 @@ def plot_capacity(results: pd.DataFrame, path: str | Path, *, success_target: fl
     matplotlib.use("Agg", force=False)
     import matplotlib.pyplot as plt
 
-    from codesign_mb.evaluation.results import atomic_write
 
     path = Path(path)
     channels = list(dict.fromkeys(results["channel"]))

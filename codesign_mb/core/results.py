@@ -13,7 +13,7 @@ the previous complete file or none, never half a file. The ``.json`` metadata is
 last: a table is complete when its metadata exists (:class:`ResultsDir` lists only those).
 
 The table names and columns that ``codesign report`` understands are documented in
-:mod:`codesign_mb.evaluation.report`.
+:mod:`codesign_mb.studies.report`.
 """
 
 from __future__ import annotations

@@ -27,6 +27,9 @@ from typing import Any
 
 import gymnasium as gym
 import numpy as np
+from codesign_mb.core.config import to_mapping
+from codesign_mb.core.results import atomic_write, to_jsonable
+from codesign_mb.core.results import package_version
 
 __all__ = [
     "Progress",
@@ -145,7 +148,6 @@ class TrainingState:
 
 def write_json(path: str | Path, data: Any) -> None:
     """Write ``data`` as indented JSON, atomically."""
-    from codesign_mb.evaluation.results import atomic_write, to_jsonable
 
     with atomic_write(path, "w") as fh:
         json.dump(to_jsonable(data), fh, indent=2)
@@ -273,8 +275,6 @@ def write_output(
     notes: str = "",
 ) -> Path:
     """Write the shipped checkpoint folder: ``model.zip``, ``training.json``, ``curve.json``."""
-    from codesign_mb.config import to_mapping
-    from codesign_mb.evaluation.results import package_version
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)

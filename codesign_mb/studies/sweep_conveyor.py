@@ -2,7 +2,7 @@
 
 One trial (``codesign sweep --scenario conveyor``) runs ``Params.episodes`` seeded episodes of
 :class:`~codesign_mb.plants.conveyor.ConveyorPickPlace` at the grid's belt speed, with one
-pipeline: a ``{controller, estimator, qos}`` row of :mod:`codesign_mb.pipeline.table`, so the
+pipeline: a ``{controller, estimator, qos}`` row of :mod:`codesign_mb.studies.table`, so the
 components (options, checkpoints) are exactly those of ``codesign table``. A sweep pipeline
 names its row by component kinds (:data:`PIPELINE_KINDS`), looked up in ``model_free_rows()``,
 ``model_based_rows()`` and ``all_rows()`` (row names change, kinds do not); :data:`PIPELINES`
@@ -18,14 +18,14 @@ Robot count: how ``n`` robots share one channel is ``Params.link``:
     ``linear`` scenario: the cell serves ``capacity_robots`` robots at the reliability they
     request and spreads the losses evenly beyond, so each packet is delivered with probability
     ``q_t * min(1, capacity_robots / n)`` (:func:`channel_share`). The default capacity, 6, is
-    the WiFi simulator's ``"paper"`` cell (:data:`codesign_mb.wifi.capacity.CHANNEL_PRESETS`):
+    the WiFi simulator's ``"paper"`` cell (:data:`codesign_mb.studies.fig_wifi.CHANNEL_PRESETS`):
     at ``q = 1`` its greedy scheduler delivers every frame of 6 robots, 80 % of 7, 15 % of 8.
     Robots are then independent and exchangeable, so one robot is simulated per episode. The
     model ignores that robots asking for less (an adaptive QoS) leave airtime to the others:
     the requested ``q_t`` is capped, not the load; use ``"wifi"`` for that.
 ``"wifi"``
     ``n`` robots in lockstep on one simulated WiFi 6 cell (``channel`` preset, ``scheduler``),
-    via :func:`codesign_mb.wifi.capacity.run_point`; success is the fraction of robots that
+    via :func:`codesign_mb.studies.fig_wifi.run_point`; success is the fraction of robots that
     succeeded. Costs ``n`` episodes per episode. The cell cannot deliver with ``tau = 0`` (a
     learned QoS policy that learned its latency may ask for it: the trial then fails).
 
@@ -94,7 +94,7 @@ def _kinds(row: Any) -> tuple[str, str, str]:
 
 
 def _table_rows() -> tuple[Any, ...]:
-    from codesign_mb.pipeline.table import all_rows, model_based_rows, model_free_rows
+    from codesign_mb.studies.table import all_rows, model_based_rows, model_free_rows
 
     return (*model_free_rows(), *model_based_rows(), *all_rows())
 
@@ -145,7 +145,7 @@ class Params:
     capacity_robots:
         ``"bernoulli"``: robots the channel serves at their requested reliability (> 0).
     channel, scheduler:
-        ``"wifi"``: a :data:`codesign_mb.wifi.capacity.CHANNEL_PRESETS` cell and a scheduler
+        ``"wifi"``: a :data:`codesign_mb.studies.fig_wifi.CHANNEL_PRESETS` cell and a scheduler
         of :data:`codesign_mb.wifi.config.SCHEDULERS`.
     """
 
@@ -159,7 +159,7 @@ class Params:
     scheduler: str = "greedy"
 
     def __post_init__(self) -> None:
-        from codesign_mb.config import from_mapping
+        from codesign_mb.core.config import from_mapping
         from codesign_mb.plants.conveyor import ConveyorConfig
 
         if isinstance(self.episodes, bool) or not isinstance(self.episodes, int):
@@ -184,7 +184,7 @@ class Params:
         object.__setattr__(self, "plant_options", dict(self.plant_options))
         # Validates horizon, belt_profile and every plant option (at a belt speed of 0).
         from_mapping(ConveyorConfig, self.plant_options_at(0.0), where="params.plant_options")
-        from codesign_mb.wifi.capacity import CHANNEL_PRESETS
+        from codesign_mb.studies.fig_wifi import CHANNEL_PRESETS
         from codesign_mb.wifi.config import SCHEDULERS
 
         if self.channel not in CHANNEL_PRESETS:
@@ -241,7 +241,7 @@ class SharedBernoulliLink:
 
 
 def pipeline_row(pipeline: str) -> Any:
-    """The :class:`~codesign_mb.pipeline.table.TableRow` of a sweep pipeline name.
+    """The :class:`~codesign_mb.studies.table.TableRow` of a sweep pipeline name.
 
     The first table row with the pipeline's kinds (rows with the same kinds have the same
     components: the tests check it).
@@ -254,7 +254,7 @@ def pipeline_row(pipeline: str) -> Any:
 
 def _factories(pipeline: str, row: Any) -> tuple[Any, Any, Any]:
     """``(controller, estimator, qos)`` factories; a missing checkpoint names the pipeline."""
-    from codesign_mb.pipeline.components import factory
+    from codesign_mb.core.registry import factory
 
     try:
         return (
@@ -269,10 +269,10 @@ def _factories(pipeline: str, row: Any) -> tuple[Any, Any, Any]:
 def run_trial(config: Any, seed: int) -> dict[str, float | int]:
     """One trial of the conveyor scenario (see the module docstring); pure in ``seed``.
 
-    ``config`` is a :class:`~codesign_mb.evaluation.sweep.TrialConfig` whose ``params`` is a
+    ``config`` is a :class:`~codesign_mb.studies.sweep.TrialConfig` whose ``params`` is a
     :class:`Params`.
     """
-    from codesign_mb.pipeline.plants import PlantSpec
+    from codesign_mb.core.registry import PlantSpec
 
     params: Params = config.params if config.params is not None else Params()
     row = pipeline_row(config.pipeline)
@@ -291,8 +291,8 @@ def run_trial(config: Any, seed: int) -> dict[str, float | int]:
 def _bernoulli_trial(
     params: Params, plant: Any, components: tuple[Any, Any, Any], n_robots: int, seed: int
 ) -> dict[str, float | int]:
+    from codesign_mb.core.registry import plant_factory
     from codesign_mb.evaluation.evaluate import evaluate, summarize
-    from codesign_mb.pipeline.plants import plant_factory
 
     share = channel_share(params, n_robots)
     controller, estimator, qos = components
@@ -325,7 +325,7 @@ def _wifi_trial(
 ) -> dict[str, float | int]:
     import numpy as np
 
-    from codesign_mb.wifi.capacity import CapacityConfig, PipelineConfig, run_point
+    from codesign_mb.studies.fig_wifi import CapacityConfig, PipelineConfig, run_point
 
     cfg = CapacityConfig(
         robots=(n_robots,),

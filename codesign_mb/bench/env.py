@@ -14,6 +14,8 @@ import time
 from typing import Any
 
 import numpy as np
+from codesign_mb.control.scripted import ScriptedPickController
+from codesign_mb.plants.conveyor import ConveyorConfig, ConveyorPickPlace
 
 __all__ = ["bench_env"]
 
@@ -34,8 +36,6 @@ def bench_env(*, repeats: int = 5, seed: int = 0, episodes: int = 1) -> dict[str
     """
     import mujoco
 
-    from codesign_mb.control.scripted import ScriptedPickController
-    from codesign_mb.plants.conveyor import ConveyorConfig, ConveyorPickPlace
 
     if int(repeats) < 1:
         raise ValueError(f"repeats must be >= 1, got {repeats}")

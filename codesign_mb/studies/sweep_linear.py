@@ -157,7 +157,7 @@ def channel_reliability(params: Params, n_robots: int) -> float:
 def run_trial(config: Any, seed: int) -> dict[str, float]:
     """One trial of the linear scenario (see the module docstring); pure in ``seed``.
 
-    ``config`` is a :class:`~codesign_mb.evaluation.sweep.TrialConfig` whose ``params`` is a
+    ``config`` is a :class:`~codesign_mb.studies.sweep.TrialConfig` whose ``params`` is a
     :class:`Params`.
     """
     params: Params = config.params if config.params is not None else Params()

@@ -29,6 +29,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from codesign_mb.core.registry import ComponentSpec, PlantSpec, build, make_plant
 from codesign_mb.estimation.learned import (
     EstimatorFeatures,
     LearnedEstimator,
@@ -39,9 +40,10 @@ from codesign_mb.estimation.learned import (
 from codesign_mb.network.link import BernoulliLink
 from codesign_mb.network.qos import QosRequest
 from codesign_mb.network.wrapper import LinkObservationWrapper
-from codesign_mb.pipeline.components import ComponentSpec, build
-from codesign_mb.pipeline.plants import PlantSpec, make_plant
-from codesign_mb.pipeline.training import Progress, no_progress, write_json
+from codesign_mb.stages.training import Progress, no_progress, write_json
+from codesign_mb.core.config import to_mapping
+from codesign_mb.core.results import atomic_write
+from codesign_mb.core.results import package_version
 
 __all__ = [
     "DelayDistribution",
@@ -132,7 +134,6 @@ class EpisodeData:
 
     def save(self, path: str | Path) -> None:
         """Write to one ``.npz`` (episodes concatenated, with their lengths)."""
-        from codesign_mb.evaluation.results import atomic_write
 
         lengths = np.array([len(x) for x in self.networked], dtype=np.int64)
         with atomic_write(path) as fh:
@@ -517,8 +518,6 @@ def train_stage_b(
     wall time, the held-out MSE table) and ``curve.json`` (loss per epoch). Collected data are
     cached in ``work_dir``; with ``resume`` a finished round or fit is not redone.
     """
-    from codesign_mb.config import to_mapping
-    from codesign_mb.evaluation.results import package_version
 
     out_dir, work_dir = Path(out_dir), Path(work_dir)
     work_dir.mkdir(parents=True, exist_ok=True)

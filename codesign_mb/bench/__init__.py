@@ -1,0 +1,1 @@
+"""Benchmarks (env, closed loop, MPC, allocators): each prints its figures as JSON."""

@@ -1,0 +1,243 @@
+"""THE closed loop: plant behind its link, QoS policy, estimator, controller; per-step record.
+
+Every episode of the toolkit runs here: evaluation, training-data collection, sweeps, the
+QoS-learning env of stage C and the N-robot WiFi cell (:func:`rollout_shared`). One step of
+robot ``i`` is DESIGN.md's data flow: the QoS policy and the link live in the
+:class:`~codesign_mb.network.LinkObservationWrapper`; the robot computes
+``x_hat_t = estimator(y_t, zeta_t)`` and ``u_t = controller(x_hat_t)`` (``eq_c_pol2``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any, Protocol
+
+import numpy as np
+import pandas as pd
+from numpy.typing import NDArray
+
+from codesign_mb.control.base import Controller
+from codesign_mb.estimation.base import Estimator
+from codesign_mb.network.wrapper import LinkObservationWrapper
+
+__all__ = ["ClosedLoop", "SharedChannelLike", "Transition", "rollout", "rollout_shared"]
+
+_RECORDED = ("qos_reliability", "qos_latency_steps", "qos_cost", "delivered", "age")
+
+
+@dataclass(frozen=True, slots=True)
+class Transition:
+    """One step as an observer sees it (training-data collection).
+
+    ``observation`` is the networked observation acted on (``y_t`` and ``zeta_t``),
+    ``state`` what the controller was given, ``info`` the plant's and the link's after the step.
+    """
+
+    t: int
+    observation: NDArray[Any]
+    state: NDArray[np.float64]
+    action: NDArray[np.float64]
+    reward: float
+    next_observation: NDArray[Any]
+    terminated: bool
+    truncated: bool
+    info: dict[str, Any]
+
+
+Observer = Callable[[Transition], None]
+
+
+class ClosedLoop:
+    """One robot's closed loop, stepped one control period at a time.
+
+    Parameters
+    ----------
+    env:
+        The plant behind its link (:class:`LinkObservationWrapper`).
+    estimator:
+        An :class:`Estimator`; ``None`` runs *ideal control*: the controller is given the
+        plant's observation with the true remote state (the paper's stage A).
+    controller:
+        A :class:`Controller`.
+    observer:
+        Called with each :class:`Transition` (e.g. to record training data).
+    record:
+        Keep the per-step record (:meth:`table`); off for training loops that need none.
+    """
+
+    def __init__(
+        self,
+        env: LinkObservationWrapper,
+        estimator: Estimator | None,
+        controller: Controller,
+        *,
+        observer: Observer | None = None,
+        record: bool = True,
+    ) -> None:
+        self.env = env
+        self.estimator = estimator
+        self.controller = controller
+        self.observer = observer
+        self.recording = record
+        self._remote = env.remote_slice
+        self.t = 0
+        self.done = True
+        self.observation: NDArray[Any] | None = None
+        self.info: dict[str, Any] = {}
+        self._state: NDArray[np.float64] | None = None
+        self._rows: list[dict[str, Any]] = []
+
+    def reset(self, *, seed: int) -> dict[str, Any]:
+        """Start an episode: plant, link, QoS policy, controller and estimator from ``seed``."""
+        obs, info = self.env.reset(seed=seed)
+        self.controller.reset(seed=seed)
+        self.observation, self.info = obs, info
+        self._state = self._estimate(obs, info, None)
+        self.t, self.done, self._rows = 0, False, []
+        return info
+
+    def _estimate(
+        self, obs: NDArray[Any], info: dict[str, Any], action: NDArray[np.float64] | None
+    ) -> NDArray[np.float64]:
+        if self.estimator is None:  # ideal control: the true remote state
+            state = np.asarray(obs[:-1], dtype=float)
+            state[self._remote] = info["remote_true"]
+            return state
+        if action is None:
+            return np.asarray(self.estimator.reset(obs))
+        return np.asarray(self.estimator.estimate(obs, action))
+
+    def step(self) -> tuple[bool, bool, dict[str, Any]]:
+        """One control period; returns ``(terminated, truncated, info)`` of the plant."""
+        if self.done or self._state is None:
+            raise RuntimeError("call reset() before step(), and not after the episode ended")
+        info = self.info
+        state = self._state
+        action = np.asarray(self.controller.act(state), dtype=float)
+        row: dict[str, Any] | None = None
+        if self.recording:
+            row = {"t": self.t}
+            for k in _RECORDED:
+                row[k] = info[k]
+            error = state[self._remote] - info["remote_true"]
+            row["estimation_error"] = float(np.sqrt(np.dot(error, error)))
+        obs, reward, terminated, truncated, next_info = self.env.step(action)
+        if row is not None:
+            row["reward"] = float(reward)
+            for k, v in next_info.items():
+                if k not in row and k not in _RECORDED and _is_scalar(v):
+                    row[k] = v
+            self._rows.append(row)
+        if self.observer is not None:
+            self.observer(
+                Transition(
+                    self.t,
+                    self.observation if self.observation is not None else obs,
+                    state,
+                    action,
+                    float(reward),
+                    obs,
+                    bool(terminated),
+                    bool(truncated),
+                    next_info,
+                )
+            )
+        self.t += 1
+        self.observation, self.info = obs, next_info
+        self.done = bool(terminated or truncated)
+        if not self.done:
+            self._state = self._estimate(obs, next_info, action)
+        return bool(terminated), bool(truncated), next_info
+
+    def table(self) -> pd.DataFrame:
+        """The per-step record: one row per control step (see :func:`rollout`)."""
+        return pd.DataFrame(self._rows)
+
+
+def _is_scalar(value: Any) -> bool:
+    return isinstance(value, bool | int | float | np.number | np.bool_) or (
+        isinstance(value, np.ndarray) and value.ndim == 0
+    )
+
+
+def rollout(
+    env: LinkObservationWrapper,
+    estimator: Estimator | None,
+    controller: Controller,
+    *,
+    seed: int,
+    max_steps: int | None = None,
+    observer: Observer | None = None,
+) -> pd.DataFrame:
+    """Run one seeded episode and return its per-step record (one row per control step).
+
+    Columns: ``t``, ``reward``, the QoS request and its cost, ``delivered``, ``age``,
+    ``estimation_error`` (norm of the remote estimate minus the truth), and every scalar
+    entry of the plant's ``info`` (e.g. ``success``). Row ``t`` holds the action taken at
+    ``t`` and what followed it; the QoS columns describe the packet that produced the
+    observation acted on. ``estimator=None`` runs ideal control (see :class:`ClosedLoop`).
+    """
+    loop = ClosedLoop(env, estimator, controller, observer=observer)
+    loop.reset(seed=seed)
+    while not loop.done and (max_steps is None or loop.t < max_steps):
+        loop.step()
+    return loop.table()
+
+
+class SharedChannelLike(Protocol):
+    """What :func:`rollout_shared` needs of a shared channel (``wifi.cell.SharedChannel``)."""
+
+    n: int
+    links: Sequence[Any]
+    step_order: Sequence[int]
+
+    def reset(self, *, seed: int | None = None) -> None: ...
+
+    def close(self, station: int) -> None: ...
+
+
+def rollout_shared(
+    envs: Sequence[LinkObservationWrapper],
+    estimators: Sequence[Estimator | None],
+    controllers: Sequence[Controller],
+    *,
+    channel: SharedChannelLike,
+    seed: int,
+    max_steps: int | None = None,
+) -> list[pd.DataFrame]:
+    """Run N robots in lockstep on one channel; one per-step table per robot (like ``rollout``).
+
+    ``envs[i]`` must be a :class:`~codesign_mb.network.LinkObservationWrapper` around robot
+    ``i``'s plant whose link is ``channel.links[i]``. Robots are stepped in
+    ``channel.step_order``; a robot whose episode ends leaves the channel.
+
+    Seeds: the channel is reset with ``seed``; robot ``i`` gets the ``i``-th stream spawned
+    from it (env, link drops and QoS policy, via the wrapper; controller).
+    """
+    n = channel.n
+    if not (len(envs) == len(estimators) == len(controllers) == n):
+        raise ValueError(
+            f"need one env, estimator and controller per station ({n}), got "
+            f"{len(envs)}, {len(estimators)}, {len(controllers)}"
+        )
+    for i, env in enumerate(envs):
+        if getattr(env, "link", None) is not channel.links[i]:
+            raise ValueError(f"envs[{i}] must be wrapped with channel.links[{i}]")
+    chan_ss, *robot_ss = np.random.SeedSequence(seed).spawn(n + 1)
+    channel.reset(seed=int(chan_ss.generate_state(1)[0]))
+    loops = [ClosedLoop(e, s, c) for e, s, c in zip(envs, estimators, controllers, strict=True)]
+    for i in channel.step_order:
+        loops[i].reset(seed=int(robot_ss[i].generate_state(1)[0]))
+    t = 0
+    while not all(loop.done for loop in loops) and (max_steps is None or t < max_steps):
+        for i in channel.step_order:
+            if not loops[i].done:
+                loops[i].step()
+                if loops[i].done:
+                    channel.close(i)
+        t += 1
+    tables = [loop.table() for loop in loops]
+    for i, table in enumerate(tables):
+        table.insert(min(1, len(table.columns)), "robot", i)
+    return tables

@@ -1,0 +1,1 @@
+"""Training of the stages A-D (``sec_pipeline``), for the learned and the model-based stacks."""
