@@ -100,7 +100,7 @@ else:
 #
 # Same tables, same columns, on the linear scenario: the model-based estimators are the
 # `predictor` (the held observation extrapolated over its age) and the `kalman` filter, the
-# baseline `plain` uses the stale observation as is, and `ideal` sees the true state.
+# baseline `none` uses the stale observation as is, and `ideal` sees the true state.
 # There is no learned pipeline in the stand-in, so only the model-based side is filled.
 
 
@@ -112,7 +112,7 @@ def linear_points(**params: float) -> pd.DataFrame:
         n_seeds=SEEDS,
         belt_speeds_mps=(0.2, 0.6),
         robot_counts=(1,),
-        pipelines=("plain", "predictor", "kalman"),
+        pipelines=("none", "predictor", "kalman"),
         params={"horizon_steps": 60 if SMOKE else 100, **params},
     )
     scratch = Path(tempfile.mkdtemp(prefix="codesign-nb03-"))
@@ -137,7 +137,7 @@ if SMOKE or not folders:
     for q in (1.0, 0.3):
         points = linear_points(reliability=q, latency_steps=1)
         points = points[points["belt_speed_mps"] == 0.6]
-        for est, name in (("kalman", "Kalman filter"), ("plain", "no state est.")):
+        for est, name in (("kalman", "Kalman filter"), ("none", "no state est.")):
             part = points[points["pipeline"] == est]
             tab.append(
                 part.assign(
@@ -155,7 +155,7 @@ if SMOKE or not folders:
             n_seeds=SEEDS,
             belt_speeds_mps=(0.6,),
             robot_counts=(1, 2, 4, 8),
-            pipelines=("plain", "predictor", "kalman"),
+            pipelines=("none", "predictor", "kalman"),
             params={"horizon_steps": 60 if SMOKE else 100},
         ),
         standin,

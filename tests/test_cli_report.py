@@ -83,7 +83,7 @@ def test_report_renders_every_table(tmp_path: Path) -> None:
         SweepConfig(
             n_seeds=2,
             robot_counts=(1, 6),
-            pipelines=("plain", "predictor"),
+            pipelines=("none", "predictor"),
             params={"horizon_steps": 20},
         ),
         tmp_path,
@@ -136,15 +136,15 @@ def test_report_reads_the_tables_other_commands_write(tmp_path: Path) -> None:
                 "latency_steps": tau,
                 "reliability": q,
                 "trials": 10,
-                "successes": 10 - tau - (est == "plain") * 3,
-                "success_rate": (10 - tau - (est == "plain") * 3) / 10,
+                "successes": 10 - tau - (est == "none") * 3,
+                "success_rate": (10 - tau - (est == "none") * 3) / 10,
             }
             for sweep, points in (
                 ("delay", [(t, 1.0) for t in range(3)]),
                 ("reliability", [(1, 0.5), (1, 0.2)]),
             )
             for v in (0.2, 0.6)
-            for est in ("predictor", "plain")
+            for est in ("predictor", "none")
             for tau, q in points
         ]
     )

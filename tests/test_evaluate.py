@@ -11,16 +11,12 @@ import pandas as pd
 import pytest
 
 from codesign_mb.adaptation.base import StaticQos
+from codesign_mb.core import registry
+from codesign_mb.core.registry import ComponentSpec, Factory
+from codesign_mb.core.seeds import episode_seeds
+from codesign_mb.core.stats import wilson_interval
 from codesign_mb.estimation.base import PassThroughEstimator
-from codesign_mb.evaluation.evaluate import (
-    TIMING_COLUMNS,
-    Factory,
-    component,
-    episode_seeds,
-    evaluate,
-    summarize,
-    wilson_interval,
-)
+from codesign_mb.evaluation.evaluate import TIMING_COLUMNS, evaluate, summarize
 
 
 class CatchEnv(gym.Env):
@@ -170,13 +166,13 @@ def test_bad_arguments_are_named() -> None:
     with pytest.raises(ValueError, match="workers"):
         _table(workers=0)
     with pytest.raises(ValueError, match="unknown estimator 'kalmn'"):
-        component("estimator", "kalmn")
+        registry.factory("estimator", ComponentSpec("kalmn"))
     with pytest.raises(ValueError, match="no env known"):
         evaluate(ProportionalController(), PassThroughEstimator, None, object(), 1, 0)
 
 
 def test_factories_pickle() -> None:
-    f = component("estimator", "plain")
+    f = registry.factory("estimator", ComponentSpec("none"))
     assert isinstance(pickle.loads(pickle.dumps(f)), Factory)
     assert isinstance(f(None), PassThroughEstimator)
     assert math.isfinite(StaticQos(0.5).reliability)
@@ -187,8 +183,8 @@ def _conveyor_table(workers: int) -> pd.DataFrame:
     from codesign_mb.plants.conveyor import ConveyorConfig
 
     return evaluate(
-        component("controller", "mpc"),
-        component("estimator", "predictor"),
+        registry.factory("controller", ComponentSpec("mpc")),
+        registry.factory("estimator", ComponentSpec("predictor")),
         StaticQos(0.5, 2),
         ConveyorConfig(belt_speed_mps=0.6),
         2,
@@ -247,7 +243,7 @@ def test_cli_evaluate_writes_table_and_summary(tmp_path) -> None:
 def test_cli_evaluate_config_file_and_errors(tmp_path) -> None:
     cfg = tmp_path / "eval.toml"
     cfg.write_text(
-        "[evaluate]\nestimator = 'plain'\ntrials = 1\nmax_steps = 5\nworkers = 1\n"
+        "[evaluate]\nestimator = 'none'\ntrials = 1\nmax_steps = 5\nworkers = 1\n"
         "[evaluate.mpc]\nhorizon = 12\n"
     )
     result = _cli(["evaluate", "-c", str(cfg), "-o", str(tmp_path / "o"), "--json"])
@@ -270,7 +266,7 @@ def test_fig_cn_tiny_grid_and_plot(tmp_path) -> None:
         delays=(0, 3),
         belt_speeds_mps=(0.6,),
         reliabilities=(0.5,),
-        estimators=("predictor", "plain"),
+        estimators=("predictor", "none"),
         max_steps=10,
     )
     table = run_fig_cn(cfg)

@@ -7,8 +7,10 @@ import pytest
 
 from codesign_mb.adaptation.base import StaticQos
 from codesign_mb.control.mpc import MpcController, Phase
+from codesign_mb.core import registry
+from codesign_mb.core.registry import ComponentSpec
 from codesign_mb.estimation.base import PassThroughEstimator
-from codesign_mb.evaluation.evaluate import component, evaluate, summarize
+from codesign_mb.evaluation.evaluate import evaluate, summarize
 from codesign_mb.network.link import BernoulliLink
 from codesign_mb.network.wrapper import LinkObservationWrapper
 from codesign_mb.plants.conveyor import ConveyorConfig, ConveyorPickPlace
@@ -49,8 +51,8 @@ def test_from_env_reads_the_plant() -> None:
 
 def _success(speed: float, latency: int, estimator: str) -> dict:
     table = evaluate(
-        component("controller", "mpc"),
-        component("estimator", estimator),
+        registry.factory("controller", ComponentSpec("mpc")),
+        registry.factory("estimator", ComponentSpec(estimator)),
         StaticQos(1.0, latency),
         ConveyorConfig(belt_speed_mps=speed),
         100,
@@ -63,7 +65,7 @@ def _success(speed: float, latency: int, estimator: str) -> dict:
 @pytest.mark.slow
 @pytest.mark.parametrize(("speed", "target"), [(0.2, 0.99), (0.6, 0.97)])
 def test_success_targets_with_perfect_communication(speed: float, target: float) -> None:
-    summary = _success(speed, 0, "plain")
+    summary = _success(speed, 0, "none")
     assert summary["success_rate"] >= target, summary
     assert summary["mpc_failures"] == 0
 

@@ -14,10 +14,10 @@ from codesign_mb.adaptation.learned import (
     QosFeatures,
     make_features,
 )
-from codesign_mb.adaptation.rules import CovarianceTriggeredQos, PredictorReplica
 from codesign_mb.core.registry import ComponentSpec, PlantSpec, make_plant
 from codesign_mb.network import BernoulliLink
 from codesign_mb.network.qos import QosRequest
+from codesign_mb.rollout.compose import covariance_rule_on, predictor_replica_on
 from codesign_mb.stages.stage_c import DualAscent, StageCConfig, make_qos_env, train_stage_c
 from codesign_mb.stages.training import SacSpec
 
@@ -28,7 +28,7 @@ TOY = PlantSpec("toy", {"horizon": 40})
 
 
 def _feature(**options: object) -> PredictorStdFeature:
-    replica = PredictorReplica(LAYOUT, control_period_s=0.04, predictor_options=PREDICTOR)
+    replica = predictor_replica_on(LAYOUT, 0.04, predictor_options=PREDICTOR)
     return PredictorStdFeature(replica, horizon=100, **options)
 
 
@@ -47,7 +47,7 @@ def test_dimension_and_options() -> None:
         f.reset()
         assert f.dim == dim and f(PRIOR, 0).shape == (dim,)
     with pytest.raises(ValueError, match="elapsed_time needs a horizon"):
-        PredictorStdFeature(PredictorReplica(LAYOUT, control_period_s=0.04))
+        PredictorStdFeature(predictor_replica_on(LAYOUT, 0.04))
     with pytest.raises(ValueError, match="scale_m"):
         _feature(scale_m=0.0)
 
@@ -95,8 +95,8 @@ def test_lift_indicator_latches_and_reset_clears_everything() -> None:
 def test_uncertainty_is_what_the_covariance_rule_thresholds() -> None:
     """Same stream: the feature's log-uncertainty crosses log10(threshold) where the rule fires."""
     threshold = 0.03
-    rule = CovarianceTriggeredQos(
-        LAYOUT, control_period_s=0.04, threshold_m=threshold, low=0.0, predictor_options=PREDICTOR
+    rule = covariance_rule_on(
+        LAYOUT, 0.04, threshold_m=threshold, low=0.0, predictor_options=PREDICTOR
     )
     feature = _feature()
     link = BernoulliLink(seed=1)

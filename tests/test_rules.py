@@ -10,6 +10,7 @@ import pytest
 from codesign_mb.adaptation.rules import CovarianceTriggeredQos, tune_threshold
 from codesign_mb.estimation.predictor import DelayCompensatingPredictor
 from codesign_mb.network import BernoulliLink, QosRequest
+from codesign_mb.rollout.compose import covariance_rule_on
 
 LAYOUT = {"gripper_pos": slice(0, 3), "object_pos": slice(3, 6)}
 
@@ -22,9 +23,9 @@ def _predictor() -> DelayCompensatingPredictor:
 
 
 def _rule(**options: float) -> CovarianceTriggeredQos:
-    return CovarianceTriggeredQos(
+    return covariance_rule_on(
         {"object_pos": slice(0, 3)},
-        control_period_s=0.04,
+        0.04,
         predictor_options=PREDICTOR,
         **options,
     )

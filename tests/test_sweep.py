@@ -138,7 +138,7 @@ def test_cli_sweep_config_file_and_errors(tmp_path: Path) -> None:
     runner = CliRunner()
     cfg = tmp_path / "sweep.toml"
     cfg.write_text(
-        "[sweep]\nn_seeds = 1\nbelt_speeds_mps = [0.2]\npipelines = ['plain', 'predictor']\n"
+        "[sweep]\nn_seeds = 1\nbelt_speeds_mps = [0.2]\npipelines = ['none', 'predictor']\n"
         "[sweep.params]\nhorizon_steps = 20\nreliability = 0.5\n"
     )
     out = tmp_path / "out"
@@ -179,7 +179,7 @@ _GRID = SweepConfig(
     n_seeds=2,
     belt_speeds_mps=(0.2, 0.6),
     robot_counts=(1, 5),
-    pipelines=("plain", "predictor"),
+    pipelines=("none", "predictor"),
     params={"horizon_steps": 30},
     seed=11,
 )
@@ -207,7 +207,7 @@ def test_local_and_ray_backends_identical(tmp_path: Path, ray_local: None) -> No
         pd.testing.assert_frame_equal(on_disk, serial, check_exact=True)
     # The pipelines differ where they should: prediction helps at the faster belt.
     fast = serial[serial["belt_speed_mps"] == 0.6].groupby("pipeline")["rms_error_m"].mean()
-    assert fast["predictor"] < fast["plain"]
+    assert fast["predictor"] < fast["none"]
 
 
 def test_tune_hyperparameters(tmp_path: Path, ray_local: None) -> None:
@@ -239,7 +239,7 @@ def test_linear_scenario_orders_pipelines(tmp_path: Path) -> None:
     cfg = SweepConfig(n_seeds=4, belt_speeds_mps=(0.6,), robot_counts=(1,))
     table = run_sweep(cfg, tmp_path, backend="serial").table
     within = table.groupby("pipeline")["within_radius_fraction"].mean()
-    assert set(within.index) == {"ideal", "plain", "predictor", "kalman"}
-    assert within["ideal"] > within["kalman"] > within["plain"]
-    assert within["ideal"] > within["predictor"] > within["plain"]
+    assert set(within.index) == {"ideal", "none", "predictor", "kalman"}
+    assert within["ideal"] > within["kalman"] > within["none"]
+    assert within["ideal"] > within["predictor"] > within["none"]
     assert (table["mean_reliability"] == 0.8).all()

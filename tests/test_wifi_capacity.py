@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from codesign_mb.adaptation.rules import CovarianceTriggeredQos
+from codesign_mb.rollout.compose import covariance_rule_on
 from codesign_mb.studies.fig_wifi import (
     CHANNEL_PRESETS,
     CapacityConfig,
@@ -24,7 +24,7 @@ def _state(t: int, z: float = 0.08) -> np.ndarray:
 
 
 def test_covariance_rule_asks_when_the_prediction_drifts():
-    rule = CovarianceTriggeredQos(LAYOUT, control_period_s=0.04, threshold_m=0.01, low=0.2)
+    rule = covariance_rule_on(LAYOUT, 0.04, threshold_m=0.01, low=0.2)
     rule.reset(seed=0)
     asked = [rule.request(_state(0), 0).reliability]  # t = 0: only the prior is held
     for t in range(1, 10):  # a fresh state every step (age 1)
@@ -40,14 +40,14 @@ def test_covariance_rule_asks_when_the_prediction_drifts():
 
 
 def test_covariance_rule_goes_low_once_the_object_is_lifted():
-    rule = CovarianceTriggeredQos(LAYOUT, control_period_s=0.04, threshold_m=1e-6, low=0.1)
+    rule = covariance_rule_on(LAYOUT, 0.04, threshold_m=1e-6, low=0.1)
     rule.reset()
     rule.request(_state(0), 0)
     assert rule.request(_state(0), 1).reliability == 1.0  # tiny threshold: always high
     assert rule.request(_state(1, z=0.2), 1).reliability == 0.1  # lifted: low for good
     assert rule.request(_state(2), 1).reliability == 0.1
     with pytest.raises(ValueError, match="threshold_m"):
-        CovarianceTriggeredQos(LAYOUT, control_period_s=0.04, threshold_m=0.0)
+        covariance_rule_on(LAYOUT, 0.04, threshold_m=0.0)
 
 
 def test_capacity_config_validates_and_picks_the_stack():

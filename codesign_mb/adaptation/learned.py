@@ -24,8 +24,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from codesign_mb.core import registry
-from codesign_mb.network.qos import QosRequest
 from codesign_mb.core.results import atomic_write
+from codesign_mb.network.qos import QosRequest
 
 __all__ = [
     "QOS_FEATURES",

@@ -14,6 +14,7 @@ import time
 from typing import Any
 
 import numpy as np
+
 from codesign_mb.control.scripted import ScriptedPickController
 from codesign_mb.plants.conveyor import ConveyorConfig, ConveyorPickPlace
 
@@ -35,7 +36,6 @@ def bench_env(*, repeats: int = 5, seed: int = 0, episodes: int = 1) -> dict[str
     average.
     """
     import mujoco
-
 
     if int(repeats) < 1:
         raise ValueError(f"repeats must be >= 1, got {repeats}")

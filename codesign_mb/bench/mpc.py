@@ -17,10 +17,9 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
+
 from codesign_mb.adaptation.base import StaticQos
-from codesign_mb.control.mpc import MpcConfig
-from codesign_mb.control.mpc import MpcController
-from codesign_mb.control.mpc import MpcQp
+from codesign_mb.control.mpc import MpcConfig, MpcController, MpcQp
 from codesign_mb.estimation.base import PassThroughEstimator
 from codesign_mb.evaluation.evaluate import episode_seeds
 from codesign_mb.network.link import BernoulliLink

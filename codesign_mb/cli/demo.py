@@ -181,6 +181,6 @@ def _robot_demo(
     title = (
         f"MPC pick on the conveyor at {cfg.belt_speed_mps:g} m/s over a Bernoulli link, "
         f"tau = {cfg.latency_steps}: {cfg.episodes} episodes per row (predictor = "
-        "delay-compensating Kalman prediction, plain = stale observation)"
+        "delay-compensating Kalman prediction, none = stale observation)"
     )
     emit(rows, as_json=False, title=title)

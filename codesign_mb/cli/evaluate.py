@@ -50,7 +50,9 @@ def register(app: typer.Typer) -> None:
         controller: Annotated[str, typer.Option(help="Ideal controller: mpc or scripted.")] = "mpc",
         estimator: Annotated[
             str,
-            typer.Option(help="Estimator: predictor (Kalman, delay-compensating) or plain."),
+            typer.Option(
+                help="Estimator: predictor (delay-compensating Kalman) or none (stale observation)."
+            ),
         ] = "predictor",
         qos: Annotated[str, typer.Option(help="QoS policy: static.")] = "static",
         reliability: Annotated[

@@ -184,7 +184,7 @@ def register(app: typer.Typer) -> None:
             if stage != "c":
                 raise ValueError("--estimator applies to stage c only")
             overrides["estimator.kind"] = estimator
-            if estimator in ("none", "plain", "predictor"):
+            if estimator in ("none", "predictor"):
                 overrides["estimator.checkpoint"] = None
         cfg = load_config(_config_class(stage), config, {}, section=stage)
         if overrides:

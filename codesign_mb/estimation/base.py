@@ -43,7 +43,7 @@ class Estimator(Protocol):
 
 
 class PassThroughEstimator:
-    """No estimation: the stale observation is used as if it were current ("plain")."""
+    """No estimation (kind ``none``): the stale observation is used as if it were current."""
 
     def reset(self, observation: NDArray[np.float64]) -> NDArray[np.float64]:
         return split_networked_observation(observation)[0]

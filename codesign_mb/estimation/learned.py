@@ -31,6 +31,7 @@ import numpy as np
 import torch
 from numpy.typing import NDArray
 from torch import nn
+
 from codesign_mb.core.results import atomic_write
 
 __all__ = [

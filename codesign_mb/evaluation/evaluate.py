@@ -34,6 +34,7 @@ import numpy as np
 import pandas as pd
 
 from codesign_mb.adaptation.base import StaticQos
+from codesign_mb.control.mpc import MpcConfig
 from codesign_mb.core import registry
 from codesign_mb.core.config import from_mapping
 from codesign_mb.core.registry import ComponentSpec, Factory
@@ -45,7 +46,6 @@ from codesign_mb.network.qos import QosRequest
 from codesign_mb.network.wrapper import LinkObservationWrapper
 from codesign_mb.plants.conveyor import ConveyorConfig, ConveyorPickPlace
 from codesign_mb.rollout import rollout
-from codesign_mb.control.mpc import MpcConfig
 
 __all__ = [
     "TIMING_COLUMNS",
@@ -452,7 +452,6 @@ class EvaluateConfig:
         """``(controller, estimator, qos_policy)`` for :func:`evaluate`."""
         kwargs: dict[str, Any] = {}
         if self.controller == "mpc":
-
             kwargs["config"] = from_mapping(MpcConfig, self.mpc, where="mpc")
         elif self.mpc:
             raise ValueError(f"mpc options given but the controller is {self.controller!r}")

@@ -57,9 +57,9 @@ import gymnasium as gym
 import numpy as np
 from numpy.typing import NDArray
 
+from codesign_mb.robot.render import OffscreenRenderer
 from codesign_mb.robot.scene import BELT_HALF_WIDTH, BELT_SURFACE_Z, BELT_X, OBJECTS
 from codesign_mb.robot.simulator import ConveyorSimulator
-from codesign_mb.robot.render import OffscreenRenderer
 
 __all__ = [
     "BELT_PROFILES",
@@ -424,7 +424,6 @@ class ConveyorPickPlace(gym.Env):
         if self.render_mode != "rgb_array":
             return None
         if self._renderer is None:
-
             cfg = self.config
             self._renderer = OffscreenRenderer(
                 self.sim.model, cfg.render_width, cfg.render_height, cfg.render_camera

@@ -31,6 +31,7 @@ __all__ = [
     "lqg",
     "lqg_average_cost",
     "predictor_replica",
+    "predictor_replica_on",
     "predictor_std_feature",
     "remote_predictor_arguments",
 ]
@@ -71,8 +72,9 @@ def predictor_replica(
     """The edge's replica of the robot's predictor for a plant (wrapped or not)."""
     arguments = remote_predictor_arguments(env, predictor_options)
     layout, period = arguments.pop("layout"), arguments.pop("control_period_s")
-    predictor = DelayCompensatingPredictor(layout, control_period_s=period, **arguments)
-    return PredictorReplica(predictor, lift_margin_m=lift_margin_m)
+    return predictor_replica_on(
+        layout, period, lift_margin_m=lift_margin_m, predictor_options=arguments
+    )
 
 
 def covariance_rule(
@@ -102,12 +104,24 @@ def covariance_rule_on(
     **options: Any,
 ) -> CovarianceTriggeredQos:
     """The covariance-triggered QoS rule on a remote ``layout``, without a plant (tests, docs)."""
+    replica = predictor_replica_on(
+        layout, control_period_s, lift_margin_m=lift_margin_m, predictor_options=predictor_options
+    )
+    return CovarianceTriggeredQos(replica, **options)
+
+
+def predictor_replica_on(
+    layout: Mapping[str, slice],
+    control_period_s: float,
+    *,
+    lift_margin_m: float | None = 0.03,
+    predictor_options: Mapping[str, Any] | None = None,
+) -> PredictorReplica:
+    """A predictor replica on a remote ``layout``, without a plant (tests, docs)."""
     predictor = DelayCompensatingPredictor(
         layout, control_period_s=control_period_s, **dict(predictor_options or {})
     )
-    return CovarianceTriggeredQos(
-        PredictorReplica(predictor, lift_margin_m=lift_margin_m), **options
-    )
+    return PredictorReplica(predictor, lift_margin_m=lift_margin_m)
 
 
 def predictor_std_feature(

@@ -24,6 +24,7 @@ import gymnasium as gym
 import numpy as np
 from stable_baselines3.common.callbacks import BaseCallback, CallbackList
 
+from codesign_mb.control.sac import SacController
 from codesign_mb.core.registry import ComponentSpec, PlantSpec, build, make_plant
 from codesign_mb.stages.training import (
     Progress,
@@ -37,7 +38,6 @@ from codesign_mb.stages.training import (
     train_sac_in_chunks,
     write_output,
 )
-from codesign_mb.control.sac import SacController
 
 __all__ = ["StageAConfig", "add_demonstrations", "evaluate_ideal", "train_stage_a"]
 

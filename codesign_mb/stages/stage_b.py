@@ -29,7 +29,9 @@ from typing import Any
 import numpy as np
 import torch
 
+from codesign_mb.core.config import to_mapping
 from codesign_mb.core.registry import ComponentSpec, PlantSpec, build, make_plant
+from codesign_mb.core.results import atomic_write, package_version
 from codesign_mb.estimation.learned import (
     EstimatorFeatures,
     LearnedEstimator,
@@ -41,9 +43,6 @@ from codesign_mb.network.link import BernoulliLink
 from codesign_mb.network.qos import QosRequest
 from codesign_mb.network.wrapper import LinkObservationWrapper
 from codesign_mb.stages.training import Progress, no_progress, write_json
-from codesign_mb.core.config import to_mapping
-from codesign_mb.core.results import atomic_write
-from codesign_mb.core.results import package_version
 
 __all__ = [
     "DelayDistribution",

@@ -53,7 +53,13 @@ from codesign_mb.adaptation.learned import (
     QosInterface,
     make_features,
 )
-from codesign_mb.core.registry import ComponentSpec, PlantSpec, build, make_plant
+from codesign_mb.core.registry import (
+    ComponentSpec,
+    PlantSpec,
+    build,
+    make_plant,
+    resolve_checkpoint,
+)
 from codesign_mb.network.link import BernoulliLink, Link
 from codesign_mb.network.qos import QosCost, QosRequest, reliability_cost
 from codesign_mb.network.wrapper import LinkObservationWrapper
@@ -68,7 +74,6 @@ from codesign_mb.stages.training import (
     train_sac_in_chunks,
     write_output,
 )
-from codesign_mb.core.registry import resolve_checkpoint
 
 __all__ = [
     "LOSSES",
@@ -563,7 +568,6 @@ def train_stage_c(
     if model is None:
         state = TrainingState(stage=stage, total_steps=config.total_steps)
         if config.warm_start:
-
             source = resolve_checkpoint(config.warm_start)
             model = SAC.load(source / "model.zip", env=env, device="cpu")
             model.set_random_seed(config.seed)

@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import Any
 
 from codesign_mb.adaptation.learned import LearnedQosPolicy
+from codesign_mb.core.config import to_mapping
 from codesign_mb.core.registry import (
     ComponentSpec,
     PlantSpec,
@@ -30,6 +31,7 @@ from codesign_mb.core.registry import (
     make_plant,
     resolve_checkpoint,
 )
+from codesign_mb.core.results import package_version
 from codesign_mb.estimation.learned import load_estimator
 from codesign_mb.stages.stage_b import (
     DelayDistribution,
@@ -44,8 +46,6 @@ from codesign_mb.stages.stage_b import (
 )
 from codesign_mb.stages.stage_c import StageCConfig, train_stage_c
 from codesign_mb.stages.training import Progress, no_progress, seeded_torch, write_json
-from codesign_mb.core.config import to_mapping
-from codesign_mb.core.results import package_version
 
 __all__ = ["StageDConfig", "train_stage_d"]
 

@@ -27,9 +27,9 @@ from typing import Any
 
 import gymnasium as gym
 import numpy as np
+
 from codesign_mb.core.config import to_mapping
-from codesign_mb.core.results import atomic_write, to_jsonable
-from codesign_mb.core.results import package_version
+from codesign_mb.core.results import atomic_write, package_version, to_jsonable
 
 __all__ = [
     "Progress",

@@ -4,7 +4,7 @@ The conveyor pick of paper.tex sec. 6 with the model-based pipeline: the MPC ide
 (:mod:`codesign_mb.control.mpc`) acts on the delay-compensating predictor's estimate
 (:mod:`codesign_mb.estimation.predictor`) of an object whose position reaches the robot over
 a :class:`~codesign_mb.network.BernoulliLink`; the same episodes without the predictor
-("plain": the stale observation used as is) show what the estimation buys. A short table:
+("none": the stale observation used as is) show what the estimation buys. A short table:
 success rate with its 95% Wilson interval, mean age, delivered fraction, estimation error.
 """
 
@@ -22,13 +22,15 @@ from codesign_mb.adaptation.base import StaticQos
 from codesign_mb.core.registry import ComponentSpec, factory
 from codesign_mb.estimation.kalman import critical_arrival_lower_bound
 from codesign_mb.evaluation.evaluate import rows_to_table, run_jobs, summarize
-from codesign_mb.network import BernoulliLink, LinkObservationWrapper, QosRequest
+from codesign_mb.network import BernoulliLink, LinkObservationWrapper
+from codesign_mb.network.qos import QosRequest
 from codesign_mb.plants.conveyor import ConveyorConfig
 from codesign_mb.plants.linear import LinearPlantEnv, make_linear_plant
 from codesign_mb.rollout import rollout
 from codesign_mb.rollout.compose import lqg, lqg_average_cost
-from codesign_mb.evaluation.evaluate import ESTIMATORS
-from codesign_mb.network.qos import QosRequest
+
+_ESTIMATORS = ("predictor", "none")
+"""Estimator kinds compared (no checkpoint needed)."""
 
 __all__ = ["LqgDemoConfig", "RobotDemoConfig", "run_lqg_demo", "run_robot_demo"]
 
@@ -50,8 +52,8 @@ class RobotDemoConfig:
     """Seeded episodes per row (>= 1); every row uses the same episode seeds."""
     seed: int = 0
     """Root seed."""
-    estimators: tuple[str, ...] = ("predictor", "plain")
-    """Estimators to compare: ``predictor`` and/or ``plain``."""
+    estimators: tuple[str, ...] = ("predictor", "none")
+    """Estimators to compare: ``predictor`` and/or ``none``."""
     workers: int | None = None
     """Worker processes (default: up to 2)."""
 
@@ -79,8 +81,8 @@ class RobotDemoConfig:
         if not (math.isfinite(self.belt_speed_mps) and self.belt_speed_mps >= 0):
             raise ValueError(f"belt_speed_mps must be >= 0, got {self.belt_speed_mps}")
         ests = tuple(self.estimators)
-        if not ests or any(e not in ESTIMATORS for e in ests):
-            raise ValueError(f"estimators must be among {', '.join(ESTIMATORS)}, got {ests!r}")
+        if not ests or any(e not in _ESTIMATORS for e in ests):
+            raise ValueError(f"estimators must be among {', '.join(_ESTIMATORS)}, got {ests!r}")
         object.__setattr__(self, "estimators", ests)
         if self.workers is not None and (int(self.workers) != self.workers or self.workers < 1):
             raise ValueError(f"workers must be an integer >= 1, got {self.workers!r}")

@@ -3,7 +3,7 @@
 paper.tex Fig. ``fig_cn`` shows the success rate of the ideal controller versus a fixed
 delay, at belt speeds 0.2 and 0.6 m/s, with and without a QoS-aware state estimator. Here the
 ideal controller is the MPC (:mod:`codesign_mb.control.mpc`), the estimator the
-delay-compensating predictor (:mod:`codesign_mb.estimation.predictor`), "plain" the stale
+delay-compensating predictor (:mod:`codesign_mb.estimation.predictor`), "none" the stale
 observation used as is; a second sweep varies the i.i.d. reliability ``q`` instead of the
 delay. Every point is an :func:`~codesign_mb.evaluation.evaluate.evaluate` of ``trials``
 seeded episodes (the same episode seeds at every point, so the curves are paired), reported
@@ -20,14 +20,16 @@ from typing import Any
 
 import pandas as pd
 
+from codesign_mb.core.results import atomic_write
 from codesign_mb.evaluation.evaluate import (
-    ESTIMATORS,
     EvaluateConfig,
     rows_to_table,
     run_jobs,
     summarize,
 )
-from codesign_mb.core.results import atomic_write
+
+_ESTIMATORS = ("predictor", "none")
+"""Estimator kinds compared (no checkpoint needed)."""
 
 __all__ = ["FigCnConfig", "fig_cn_points", "plot_fig_cn", "run_fig_cn"]
 
@@ -52,7 +54,7 @@ class FigCnConfig:
     reliability_latency_steps:
         The latency of the loss sweep (the paper's robotics runs use one step).
     estimators:
-        Names in :data:`~codesign_mb.evaluation.evaluate.ESTIMATORS` to compare.
+        Names in ``FIG_CN__ESTIMATORS`` to compare.
     controller, env, mpc, predictor:
         As in :class:`~codesign_mb.evaluation.evaluate.EvaluateConfig`. ``env`` defaults to
         ``terminate_on_success=True``: success is latched, so ending an episode at its success
@@ -68,7 +70,7 @@ class FigCnConfig:
     belt_speeds_mps: tuple[float, ...] = (0.2, 0.6)
     reliabilities: tuple[float, ...] = (1.0, 0.8, 0.5, 0.3, 0.2, 0.1, 0.05)
     reliability_latency_steps: int = 1
-    estimators: tuple[str, ...] = ("predictor", "plain")
+    estimators: tuple[str, ...] = ("predictor", "none")
     controller: str = "mpc"
     env: dict[str, Any] = field(default_factory=lambda: {"terminate_on_success": True})
     mpc: dict[str, Any] = field(default_factory=dict)
@@ -90,8 +92,8 @@ class FigCnConfig:
             if not (math.isfinite(q) and 0.0 <= q <= 1.0):
                 raise ValueError(f"reliabilities must be in [0, 1], got {q!r}")
         for e in self.estimators:
-            if e not in ESTIMATORS:
-                raise ValueError(f"estimators must be in {', '.join(ESTIMATORS)}, got {e!r}")
+            if e not in _ESTIMATORS:
+                raise ValueError(f"estimators must be in {', '.join(_ESTIMATORS)}, got {e!r}")
         self.base()  # validates the shared fields (controller, trials, seed, workers)
 
     def base(self) -> EvaluateConfig:
@@ -183,14 +185,13 @@ def plot_fig_cn(table: pd.DataFrame, path: str | Path) -> Path:
     matplotlib.use("Agg", force=False)
     import matplotlib.pyplot as plt
 
-
     path = Path(path)
     speeds = sorted(table["belt_speed_mps"].unique())
     sweeps = [s for s in ("delay", "reliability") if s in set(table["sweep"])]
     fig, axes = plt.subplots(
         len(sweeps), len(speeds), figsize=(4.2 * len(speeds), 3.2 * len(sweeps)), squeeze=False
     )
-    styles = {"predictor": ("C0", "o", "MPC + predictor"), "plain": ("C3", "s", "MPC, plain")}
+    styles = {"predictor": ("C0", "o", "MPC + predictor"), "none": ("C3", "s", "MPC, no estimator")}
     try:
         for r, sweep in enumerate(sweeps):
             for c, speed in enumerate(speeds):

@@ -50,20 +50,17 @@ import numpy as np
 import pandas as pd
 
 from codesign_mb.adaptation.rules import AgeTriggeredQos
+from codesign_mb.core.config import from_mapping
+from codesign_mb.core.registry import ComponentSpec, PlantSpec, build, make_plant
+from codesign_mb.core.results import atomic_write
 from codesign_mb.evaluation import pool
+from codesign_mb.network.wrapper import LinkObservationWrapper
+from codesign_mb.rollout import rollout_shared
 from codesign_mb.rollout.compose import covariance_rule
+from codesign_mb.wifi.cell import SharedChannel
 from codesign_mb.wifi.channel import ChannelConfig
 from codesign_mb.wifi.config import SCHEDULERS, WifiConfig
 from codesign_mb.wifi.phy import MacTiming, PhyConfig
-from codesign_mb.core.config import from_mapping
-from codesign_mb.core.registry import ComponentSpec
-from codesign_mb.core.registry import PlantSpec
-from codesign_mb.core.registry import build
-from codesign_mb.core.registry import make_plant
-from codesign_mb.core.results import atomic_write
-from codesign_mb.network.wrapper import LinkObservationWrapper
-from codesign_mb.rollout import rollout_shared
-from codesign_mb.wifi.cell import SharedChannel
 
 __all__ = [
     "CHANNEL_PRESETS",
@@ -420,7 +417,6 @@ def plot_capacity(results: pd.DataFrame, path: str | Path, *, success_target: fl
 
     matplotlib.use("Agg", force=False)
     import matplotlib.pyplot as plt
-
 
     path = Path(path)
     channels = list(dict.fromkeys(results["channel"]))

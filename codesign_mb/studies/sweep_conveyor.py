@@ -54,8 +54,15 @@ from typing import Any
 
 from numpy.typing import ArrayLike
 
+from codesign_mb.core.config import from_mapping
+from codesign_mb.core.registry import PlantSpec, factory, plant_factory
+from codesign_mb.evaluation.evaluate import evaluate, summarize
 from codesign_mb.network.link import BernoulliLink, Reception
 from codesign_mb.network.qos import QosRequest
+from codesign_mb.plants.conveyor import ConveyorConfig
+from codesign_mb.studies.fig_wifi import CHANNEL_PRESETS, CapacityConfig, PipelineConfig, run_point
+from codesign_mb.studies.table import all_rows, model_based_rows, model_free_rows
+from codesign_mb.wifi.config import SCHEDULERS
 
 __all__ = [
     "DEFAULT_PIPELINES",
@@ -74,7 +81,7 @@ PIPELINE_KINDS: dict[str, tuple[str, str, str]] = {
     "model-based-static": ("mpc", "predictor", "static"),
     "model-based-rule": ("mpc", "predictor", "rule"),
     "model-based-learned-qos": ("mpc", "predictor", "learned"),
-    "model-based-no-estimator": ("mpc", "plain", "rule"),
+    "model-based-no-estimator": ("mpc", "none", "rule"),
     "model-free-static": ("sac", "mlp", "static"),
     "model-free-codesign": ("sac", "mlp", "learned"),
     "sac-mlp-rule": ("sac", "mlp", "rule"),
@@ -94,7 +101,6 @@ def _kinds(row: Any) -> tuple[str, str, str]:
 
 
 def _table_rows() -> tuple[Any, ...]:
-    from codesign_mb.studies.table import all_rows, model_based_rows, model_free_rows
 
     return (*model_free_rows(), *model_based_rows(), *all_rows())
 
@@ -159,8 +165,6 @@ class Params:
     scheduler: str = "greedy"
 
     def __post_init__(self) -> None:
-        from codesign_mb.core.config import from_mapping
-        from codesign_mb.plants.conveyor import ConveyorConfig
 
         if isinstance(self.episodes, bool) or not isinstance(self.episodes, int):
             raise ValueError(f"episodes must be an integer, got {self.episodes!r}")
@@ -184,8 +188,6 @@ class Params:
         object.__setattr__(self, "plant_options", dict(self.plant_options))
         # Validates horizon, belt_profile and every plant option (at a belt speed of 0).
         from_mapping(ConveyorConfig, self.plant_options_at(0.0), where="params.plant_options")
-        from codesign_mb.studies.fig_wifi import CHANNEL_PRESETS
-        from codesign_mb.wifi.config import SCHEDULERS
 
         if self.channel not in CHANNEL_PRESETS:
             raise ValueError(
@@ -254,7 +256,6 @@ def pipeline_row(pipeline: str) -> Any:
 
 def _factories(pipeline: str, row: Any) -> tuple[Any, Any, Any]:
     """``(controller, estimator, qos)`` factories; a missing checkpoint names the pipeline."""
-    from codesign_mb.core.registry import factory
 
     try:
         return (
@@ -272,7 +273,6 @@ def run_trial(config: Any, seed: int) -> dict[str, float | int]:
     ``config`` is a :class:`~codesign_mb.studies.sweep.TrialConfig` whose ``params`` is a
     :class:`Params`.
     """
-    from codesign_mb.core.registry import PlantSpec
 
     params: Params = config.params if config.params is not None else Params()
     row = pipeline_row(config.pipeline)
@@ -291,8 +291,6 @@ def run_trial(config: Any, seed: int) -> dict[str, float | int]:
 def _bernoulli_trial(
     params: Params, plant: Any, components: tuple[Any, Any, Any], n_robots: int, seed: int
 ) -> dict[str, float | int]:
-    from codesign_mb.core.registry import plant_factory
-    from codesign_mb.evaluation.evaluate import evaluate, summarize
 
     share = channel_share(params, n_robots)
     controller, estimator, qos = components
@@ -324,8 +322,6 @@ def _wifi_trial(
     params: Params, plant: Any, row: Any, pipeline: str, n_robots: int, seed: int
 ) -> dict[str, float | int]:
     import numpy as np
-
-    from codesign_mb.studies.fig_wifi import CapacityConfig, PipelineConfig, run_point
 
     cfg = CapacityConfig(
         robots=(n_robots,),

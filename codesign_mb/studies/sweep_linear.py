@@ -15,7 +15,7 @@ backends can be exercised (and the trends read) without MuJoCo. One trial simula
   ``max_accel_mps2``), driven by the LQR ``u = -K (g - o_hat)`` of the error dynamics
   ``e = g - o`` with weights ``diag(1, velocity_weight)`` and ``control_weight``.
 - **Pipelines** (how ``o_hat`` is formed from ``y_t = x_{t - zeta_t}``):
-  ``ideal`` (the true ``o_t``, no network: the upper bound), ``plain`` (``y_t`` used as if
+  ``ideal`` (the true ``o_t``, no network: the upper bound), ``none`` (``y_t`` used as if
   current), ``predictor`` (``A^zeta y_t``: extrapolated over its age with the model) and
   ``kalman`` (:class:`~codesign_mb.estimation.kalman.IntermittentKalmanFilter` with lost and
   delayed measurements).
@@ -38,11 +38,12 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from codesign_mb.estimation.kalman import IntermittentKalmanFilter
 from codesign_mb.network import BernoulliLink, QosRequest
 
 __all__ = ["DEFAULT_PIPELINES", "PIPELINES", "Params", "run_trial"]
 
-PIPELINES: tuple[str, ...] = ("ideal", "plain", "predictor", "kalman")
+PIPELINES: tuple[str, ...] = ("ideal", "none", "predictor", "kalman")
 """Pipelines this scenario accepts."""
 
 DEFAULT_PIPELINES: tuple[str, ...] = tuple(
@@ -202,7 +203,7 @@ def _simulate_robot(
         rx = link.step(measured, qos)
         if pipeline == "ideal":
             estimate = obj
-        elif pipeline == "plain":
+        elif pipeline == "none":
             estimate = rx.observation
         elif pipeline == "predictor":
             estimate = np.linalg.matrix_power(a_obj, rx.age) @ rx.observation
@@ -237,14 +238,6 @@ def _simulate_robot(
 
 
 def _make_kalman(params: Params, prior: NDArray[np.float64]) -> Any:
-    try:
-        from codesign_mb.estimation.kalman import IntermittentKalmanFilter
-    except ModuleNotFoundError as exc:
-        if exc.name and "codesign_mb.estimation.kalman".startswith(exc.name):
-            raise ValueError(
-                "pipeline 'kalman' needs codesign_mb.estimation.kalman, which does not exist yet"
-            ) from None
-        raise
     dt = params.control_period_s
     process = np.diag([1e-12, params.velocity_noise_mps**2])
     noise = np.diag(

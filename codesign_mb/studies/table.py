@@ -69,6 +69,12 @@ from codesign_mb.core.registry import (
     plant_factory,
     resolve_checkpoint,
 )
+from codesign_mb.core.results import atomic_write
+from codesign_mb.evaluation.evaluate import Factory, rows_to_table, run_jobs, summarize
+from codesign_mb.network.link import BernoulliLink
+from codesign_mb.network.wrapper import LinkObservationWrapper
+from codesign_mb.plants.conveyor import ConveyorConfig
+from codesign_mb.rollout import rollout
 
 __all__ = [
     "CPU_COLUMNS",
@@ -152,8 +158,6 @@ class TablePlant:
         options = dict(spec.options)
         label = spec.name
         if spec.name == "conveyor":
-            from codesign_mb.plants.conveyor import ConveyorConfig
-
             config = from_mapping(ConveyorConfig, options, where="plant.options")
             label = f"{config.belt_speed_mps:g} m/s"
             if config.belt_profile != "constant":
@@ -215,7 +219,7 @@ def model_based_rows() -> tuple[TableRow, ...]:
     """The model-based counterparts of Table I: MPC, the predictor, the covariance rule."""
     return (
         TableRow("MPC + predictor, static QoS", _MPC, _PREDICTOR, _STATIC),
-        TableRow("MPC, no estimator, rule QoS", _MPC, ComponentSpec("plain"), _rule()),
+        TableRow("MPC, no estimator, rule QoS", _MPC, ComponentSpec("none"), _rule()),
         TableRow("MPC + predictor, rule QoS (co-design)", _MPC, _PREDICTOR, _rule()),
     )
 
@@ -258,7 +262,7 @@ def all_rows() -> tuple[TableRow, ...]:
             _PREDICTOR,
             ComponentSpec("learned", "checkpoints/stage_c_mpc"),
         ),
-        TableRow("MPC, no estimator, rule QoS", _MPC, ComponentSpec("plain"), rule),
+        TableRow("MPC, no estimator, rule QoS", _MPC, ComponentSpec("none"), rule),
         TableRow("SAC + predictor, static QoS", _SAC, _PREDICTOR, _STATIC),
         TableRow("SAC + predictor, rule QoS", _SAC, _PREDICTOR, rule),
         TableRow("MPC + MLP, static QoS", _MPC, _MLP, _STATIC),
@@ -290,7 +294,7 @@ def stack_of(row: TableRow) -> str:
     """``"model-free"`` (learned controller, learned or no estimator), ``"model-based"`` (a
     model-based controller with a model-based or no estimator) or ``"mixed"``."""
     c, e = row.controller.kind, row.estimator.kind
-    no_estimator = e in ("none", "plain")
+    no_estimator = e == "none"
     if c in _LEARNED_CONTROLLERS and (e in _LEARNED_ESTIMATORS or no_estimator):
         return "model-free"
     if c in _MODEL_BASED and (e in _MODEL_BASED or no_estimator):
@@ -566,7 +570,6 @@ def _timed_component(env: Any, *, role: str, inner: Any) -> Any:
 
 
 def _timed_factory(role: str, spec: ComponentSpec) -> Any:
-    from codesign_mb.evaluation.evaluate import Factory
 
     return Factory(
         "codesign_mb.studies.table:_timed_component",
@@ -648,7 +651,6 @@ def run_table(
     summary has one row per (plant, row) in the config's order (see the module docstring);
     the episodes table one row per episode, with ``plant`` and ``row``.
     """
-    from codesign_mb.evaluation.evaluate import rows_to_table, run_jobs, summarize
 
     rows, plants = config.table_rows(), config.table_plants()
     missing = {row.name: missing_checkpoints(row) for row in rows}
@@ -765,9 +767,6 @@ def qos_timeline(
 
     With a :class:`TablePlant`, only the episodes of that plant (column ``plant``) count.
     """
-    from codesign_mb.network.link import BernoulliLink
-    from codesign_mb.network.wrapper import LinkObservationWrapper
-    from codesign_mb.rollout import rollout
 
     if episodes.empty:
         return None
@@ -822,7 +821,7 @@ _PAIR_MARKERS = {
     ("sac", "lstm"): "o",
     ("sac", "none"): "v",
     ("mpc", "predictor"): "s",
-    ("mpc", "plain"): "D",
+    ("mpc", "none"): "D",
     ("sac", "predictor"): "^",
     ("mpc", "mlp"): "P",
     ("mpc", "lstm"): "P",
@@ -906,7 +905,6 @@ def plot_pareto(summary: pd.DataFrame, path: str | Path, *, title: str = "") -> 
 
 
 def _save(fig: Any, path: str | Path) -> Path:
-    from codesign_mb.core.results import atomic_write
 
     path = Path(path)
     with atomic_write(path) as fh:
