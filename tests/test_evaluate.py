@@ -165,7 +165,7 @@ def test_table_columns_and_summary() -> None:
 def test_bad_arguments_are_named() -> None:
     with pytest.raises(ValueError, match="workers"):
         _table(workers=0)
-    with pytest.raises(ValueError, match="unknown estimator 'kalmn'"):
+    with pytest.raises(ValueError, match="unknown estimator kind 'kalmn'"):
         registry.factory("estimator", ComponentSpec("kalmn"))
     with pytest.raises(ValueError, match="no env known"):
         evaluate(ProportionalController(), PassThroughEstimator, None, object(), 1, 0)

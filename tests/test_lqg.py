@@ -20,7 +20,8 @@ import typer
 from typer.testing import CliRunner
 
 from codesign_mb.adaptation.base import StaticQos
-from codesign_mb.cli.demo import LqgDemoConfig, register, run_lqg_demo
+from codesign_mb.cli.demo import register
+from codesign_mb.studies.demo import LqgDemoConfig, run_lqg_demo
 from codesign_mb.control.lqr import LqrController
 from codesign_mb.estimation.kalman import intermittent_riccati, steady_state_covariance
 from codesign_mb.network import BernoulliLink, LinkObservationWrapper

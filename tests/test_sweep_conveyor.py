@@ -16,7 +16,7 @@ from codesign_mb.cli import sweep as sweep_cli
 from codesign_mb.core.results import ResultsDir
 from codesign_mb.network.link import BernoulliLink
 from codesign_mb.network.qos import QosRequest
-from codesign_mb.stages import sweep as conveyor
+from codesign_mb.studies import sweep_conveyor as conveyor
 from codesign_mb.studies.sweep import GRID_COLUMNS, SweepConfig, plan_sweep, run_sweep
 from codesign_mb.studies.table import (
     MPC_RULE_THRESHOLD_M,

@@ -291,16 +291,16 @@ def test_table_rows_by_plants_missing_checkpoint_and_figures(
 
 
 def test_one_pool_for_all_rows_and_plants(monkeypatch: pytest.MonkeyPatch) -> None:
-    import codesign_mb.evaluation.evaluate as evaluate_module
+    import codesign_mb.studies.table as table_module
 
     calls: list[int] = []
-    real = evaluate_module.run_jobs
+    real = table_module.run_jobs
 
     def counting(jobs, **kwargs):
         calls.append(len(jobs))
         return real(jobs, **kwargs)
 
-    monkeypatch.setattr(evaluate_module, "run_jobs", counting)
+    monkeypatch.setattr(table_module, "run_jobs", counting)
     toy = ComponentSpec("toy_pick")
     rows = tuple(
         TableRow(

@@ -50,6 +50,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
@@ -57,6 +58,7 @@ import gymnasium as gym
 import numpy as np
 from numpy.typing import NDArray
 
+from codesign_mb.core.config import from_mapping
 from codesign_mb.robot.render import OffscreenRenderer
 from codesign_mb.robot.scene import BELT_HALF_WIDTH, BELT_SURFACE_Z, BELT_X, OBJECTS
 from codesign_mb.robot.simulator import ConveyorSimulator
@@ -355,6 +357,12 @@ class ConveyorPickPlace(gym.Env):
         self._held_steps = 0
         self._success = False
         self._spawn = np.array([BELT_X, config.spawn_y_m, self.rest_height])
+
+    @classmethod
+    def from_options(cls, options: Mapping[str, Any] | None = None) -> ConveyorPickPlace:
+        """The env from the fields of its :class:`ConveyorConfig` (unknown ones are an error)."""
+        config = from_mapping(ConveyorConfig, dict(options or {}), where="plant.options")
+        return cls(config=config)
 
     @property
     def belt_speeds(self) -> NDArray[np.float64]:

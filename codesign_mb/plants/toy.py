@@ -10,12 +10,15 @@ either env unchanged. It steps in microseconds, so the test suite can train on i
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
 import gymnasium as gym
 import numpy as np
 from numpy.typing import NDArray
+
+from codesign_mb.core.config import from_mapping
 
 __all__ = ["ToyConveyor", "ToyConveyorConfig"]
 
@@ -83,6 +86,13 @@ class ToyConveyor(gym.Env):
         self._width = 1.0
         self._held = False
         self._t = 0
+
+    @classmethod
+    def from_options(cls, options: Mapping[str, Any] | None = None) -> ToyConveyor:
+        """The env from the fields of its :class:`ToyConveyorConfig` (unknown ones are an error)."""
+        return cls(
+            config=from_mapping(ToyConveyorConfig, dict(options or {}), where="plant.options")
+        )
 
     def remote_prior(self) -> NDArray[np.float64]:
         """The nominal spawn point on the belt, moving at the belt speed."""
