@@ -39,9 +39,13 @@ test: install
 test-slow: install
 	$(BIN)/python -m pytest -m slow -q
 
+# ruff (style), import-linter (the layers of DESIGN.md, pyproject [tool.importlinter]),
+# mypy (the lower layers, pyproject [tool.mypy]).
 lint: install
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
+	$(BIN)/lint-imports
+	$(BIN)/mypy
 
 format: install
 	$(BIN)/ruff check --fix .

@@ -38,12 +38,11 @@ package's ``models`` folder (so ``checkpoints/stage_a/model.zip`` finds the ship
 from __future__ import annotations
 
 import importlib
+import importlib.resources
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
-
-import codesign_mb.models
 
 __all__ = [
     "KINDS",
@@ -167,7 +166,9 @@ def kinds(role: str) -> tuple[str, ...]:
 
 
 def _kind(role: str, kind: str) -> Kind:
-    table = KINDS[role] if role in KINDS else dict.fromkeys(kinds(role))
+    table = KINDS[role] if role in KINDS else {}
+    if not table:
+        kinds(role)  # raises, naming the roles
     if kind not in table:
         raise ValueError(f"unknown {role} kind {kind!r}; expected one of {', '.join(table)}")
     return table[kind]
@@ -203,7 +204,7 @@ class ComponentSpec:
 def models_dir() -> Path:
     """The package's ``models`` folder (``models/`` of the source tree in an editable install)."""
 
-    return Path(codesign_mb.models.__file__).resolve().parent
+    return Path(str(importlib.resources.files("codesign_mb.models"))).resolve()
 
 
 def resolve_checkpoint(path: str | Path) -> Path:

@@ -117,6 +117,9 @@ class _Normalised(nn.Module):
 
     def __init__(self, in_dim: int, out_dim: int) -> None:
         super().__init__()
+        self.in_mean: torch.Tensor
+        self.in_std: torch.Tensor
+        self.out_std: torch.Tensor
         self.register_buffer("in_mean", torch.zeros(in_dim))
         self.register_buffer("in_std", torch.ones(in_dim))
         self.register_buffer("out_std", torch.ones(out_dim))
@@ -260,6 +263,7 @@ class MlpEstimator(LearnedEstimator):
         return self.net(feats)
 
     def _net_config(self) -> dict[str, Any]:
+        assert isinstance(self.net, MlpEstimatorNet)
         return {"hidden": list(self.net.hidden)}
 
 

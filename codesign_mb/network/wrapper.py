@@ -60,6 +60,7 @@ class LinkObservationWrapper(gym.Wrapper):
         self.link = link
         self.qos_policy = qos_policy
         self.qos_cost = qos_cost
+        self.plant: NetworkedPlant = plant
         self.remote_slice: slice = plant.remote_slice
         horizon = getattr(plant, "horizon", None)
         age_high = np.inf if horizon is None else float(horizon) + 1.0
@@ -84,7 +85,7 @@ class LinkObservationWrapper(gym.Wrapper):
             link_ss, qos_ss = np.random.SeedSequence(seed).spawn(2)
             link_seed = int(link_ss.generate_state(1)[0])
             qos_seed = int(qos_ss.generate_state(1)[0])
-        prior = np.asarray(self.env.unwrapped.remote_prior(), dtype=float)
+        prior = np.asarray(self.plant.remote_prior(), dtype=np.float64)
         self.link.reset(seed=link_seed, prior=prior)
         self.qos_policy.reset(seed=qos_seed)
         # Before t = 0 the robot holds the prior, of age 0 by the convention of eq_time.
@@ -95,7 +96,7 @@ class LinkObservationWrapper(gym.Wrapper):
             raise RuntimeError("call reset() before step()")
         obs, reward, terminated, truncated, info = self.env.step(action)
         out, info = self._transmit(obs, info, self._last.observation, self._last.age)
-        return out, reward, terminated, truncated, info
+        return out, float(reward), terminated, truncated, info
 
     def _transmit(
         self,
