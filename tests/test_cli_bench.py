@@ -1,4 +1,4 @@
-"""``codesign bench``: lazy registry, readable errors for parts not written yet."""
+"""``codesign bench``: the suite by name, readable errors, ``all`` fails when one fails."""
 
 from __future__ import annotations
 
@@ -9,6 +9,7 @@ import pytest
 import typer
 from typer.testing import CliRunner
 
+from codesign_mb.bench import suite
 from codesign_mb.cli import bench as bench_cli
 
 
@@ -16,15 +17,16 @@ def fake_bench(*, repeats: int, seed: int) -> dict[str, Any]:
     return {"solve_s_median": 0.001 * repeats, "seed_seen": seed}
 
 
+def broken_bench(*, repeats: int, seed: int) -> dict[str, Any]:
+    raise RuntimeError("solver diverged")
+
+
 @pytest.fixture
 def app(monkeypatch: pytest.MonkeyPatch) -> typer.Typer:
     monkeypatch.setattr(
-        bench_cli,
+        suite,
         "BENCHMARKS",
-        {
-            "fake": f"{__name__}:fake_bench",
-            "later": "codesign_mb.not_written_yet.bench:bench_later",
-        },
+        {"fake": f"{__name__}:fake_bench", "broken": f"{__name__}:broken_bench"},
     )
     app = typer.Typer(pretty_exceptions_enable=False)
     bench_cli.register(app)
@@ -44,24 +46,20 @@ def test_bench_runs_registered_function(app: typer.Typer) -> None:
     assert data["solve_s_median"] == pytest.approx(0.003) and data["wall_s"] >= 0
 
 
-def test_missing_part_is_a_readable_error(app: typer.Typer) -> None:
-    result = CliRunner().invoke(app, ["bench", "later"])
-    assert result.exit_code == 2
-    assert result.stderr == (
-        "error: benchmark 'later' is not available: module 'codesign_mb.not_written_yet.bench' "
-        "does not exist yet\n"
-    )
+def test_unknown_benchmark_is_a_readable_error(app: typer.Typer) -> None:
     result = CliRunner().invoke(app, ["bench", "nope"])
     assert result.exit_code == 2
     assert result.stderr.startswith("error: unknown benchmark 'nope'")
 
 
-def test_bench_all_skips_missing(app: typer.Typer) -> None:
+def test_bench_all_fails_when_one_fails(app: typer.Typer) -> None:
     result = CliRunner().invoke(app, ["bench", "all", "--json", "-n", "1"])
-    assert result.exit_code == 0, result.output
+    assert result.exit_code == 1, result.output
     data = json.loads(result.stdout)
-    assert [d["benchmark"] for d in data] == ["fake", "later"]
-    assert "skipped" in data[1]
+    assert [d["benchmark"] for d in data] == ["fake", "broken"]
+    assert data[0]["repeats"] == 1 and "error" not in data[0]
+    assert data[1]["error"] == "RuntimeError: solver diverged"
+    assert "1 benchmark(s) failed: broken: RuntimeError: solver diverged" in result.stderr
 
 
 def test_bench_config_file(app: typer.Typer, tmp_path: Any) -> None:
@@ -76,9 +74,9 @@ def test_bench_config_file(app: typer.Typer, tmp_path: Any) -> None:
     assert result.stderr == "error: repeats must be >= 1, got 0\n"
 
 
-def test_registry_points_at_the_agreed_functions() -> None:
-    assert bench_cli.BENCHMARKS == {
-        "env": "codesign_mb.bench.env:bench_env",
-        "mpc": "codesign_mb.bench.mpc:bench_mpc",
-        "allocators": "codesign_mb.bench.allocators:bench_allocators",
-    }
+def test_every_registered_benchmark_resolves() -> None:
+    from codesign_mb.core.registry import resolve
+
+    assert set(suite.BENCHMARKS) == {"env", "loop", "mpc", "allocators"}
+    for target in suite.BENCHMARKS.values():
+        assert callable(resolve(target))

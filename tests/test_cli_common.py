@@ -80,6 +80,11 @@ def _app() -> typer.Typer:
     def crash() -> None:
         raise RuntimeError("a bug")
 
+    @app.command()
+    @cli_errors
+    def typo() -> None:
+        len(3)  # type: ignore[arg-type]
+
     return app
 
 
@@ -149,10 +154,20 @@ def test_config_section(tmp_path: Path) -> None:
     assert load_config(DemoCfg, cfg, {}, section="demo").steps == 3
 
 
-def test_bugs_keep_their_traceback() -> None:
+def test_bugs_are_one_line_with_a_pointer_to_debug(monkeypatch: pytest.MonkeyPatch) -> None:
     result = runner.invoke(_app(), ["crash"])
     assert result.exit_code == 1
-    assert isinstance(result.exception, RuntimeError)
+    assert result.stderr.startswith("error: unexpected RuntimeError: ")
+    assert "--debug" in result.stderr and result.stderr.count("\n") == 1
+    monkeypatch.setenv("CODESIGN_DEBUG", "1")  # what `codesign --debug` sets
+    result = runner.invoke(_app(), ["crash"])
+    assert result.exit_code == 1 and isinstance(result.exception, RuntimeError)
+
+
+def test_type_errors_are_bugs_not_user_errors() -> None:
+    result = runner.invoke(_app(), ["typo"])
+    assert result.exit_code == 1
+    assert result.stderr.startswith("error: unexpected TypeError: ")
 
 
 def test_cli_errors_keeps_signature_for_help() -> None:

@@ -21,8 +21,9 @@ from codesign_mb.wifi import (
     offline_optimum,
     replay,
 )
-from codesign_mb.wifi.allocators import admit_edf, must_serve, served_bits
-from codesign_mb.wifi.sim import ChannelEngine, Frame
+from codesign_mb.wifi.admission import admit_edf, must_serve
+from codesign_mb.wifi.allocators import served_bits
+from codesign_mb.wifi.engine import ChannelEngine, Frame
 
 CELL = WifiConfig(channel=ChannelConfig(fixed_mcs=1, q0=0.9, rician_k_db=math.inf))
 

@@ -13,7 +13,7 @@ from codesign_mb.estimation.base import PassThroughEstimator
 from codesign_mb.network import Link, LinkObservationWrapper, QosRequest
 from codesign_mb.rollout import rollout_shared
 from codesign_mb.wifi import ChannelConfig, SharedChannel, WifiConfig, WifiLink
-from codesign_mb.wifi.phy import MacTiming
+from codesign_mb.wifi.mac import MacTiming
 
 CELL = WifiConfig(
     channel=ChannelConfig(fixed_mcs=1, q0=0.9, rician_k_db=math.inf),

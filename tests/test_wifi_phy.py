@@ -14,7 +14,8 @@ from codesign_mb.wifi.channel import (
     frame_delivery_probability,
     packet_error_rate,
 )
-from codesign_mb.wifi.phy import MacTiming, PhyConfig, data_rate_mbps, legacy_ppdu_us, ru_plan
+from codesign_mb.wifi.mac import MacTiming, legacy_ppdu_us
+from codesign_mb.wifi.phy import PhyConfig, data_rate_mbps, ru_plan
 from codesign_mb.wifi.traffic import TrafficConfig, drop_probability
 
 

@@ -6,6 +6,7 @@ Heavy dependencies (torch, mujoco, ray) are imported inside commands so ``--help
 from __future__ import annotations
 
 import importlib
+import os
 
 import typer
 
@@ -32,6 +33,17 @@ _COMMAND_MODULES = (
     "table",
     "evaluate",
 )
+
+
+@app.callback()
+def _root(
+    debug: bool = typer.Option(
+        False, "--debug", help="Show the full traceback of any error (also CODESIGN_DEBUG=1)."
+    ),
+) -> None:
+    if debug:
+        os.environ["CODESIGN_DEBUG"] = "1"
+
 
 for _name in _COMMAND_MODULES:
     importlib.import_module(f"codesign_mb.cli.{_name}").register(app)

@@ -49,6 +49,7 @@ from collections.abc import Callable, Iterable, Iterator, Mapping
 from pathlib import Path
 from typing import Annotated, Any, ParamSpec, TypeVar
 
+import click
 import typer
 
 from codesign_mb.core.config import from_mapping, load_config_file
@@ -74,7 +75,11 @@ T = TypeVar("T")
 USAGE_ERROR_EXIT_CODE = 2
 """Exit code of a command stopped by bad input (the same as click's usage errors)."""
 
-_USER_ERRORS: tuple[type[BaseException], ...] = (ValueError, TypeError, OSError)
+_USER_ERRORS: tuple[type[BaseException], ...] = (ValueError, OSError)
+"""Bad input (a value, a file): one line, exit code 2. Anything else is a bug: see ``--debug``."""
+
+BUG_EXIT_CODE = 1
+INTERRUPTED_EXIT_CODE = 130
 
 ConfigOption = Annotated[
     Path | None,
@@ -101,12 +106,14 @@ OutOption = Annotated[
 
 
 def cli_errors(func: Callable[P, R]) -> Callable[P, R]:
-    """Decorate a typer command so user errors read as one line, not a traceback.
+    """Decorate a typer command so that nothing a user types ends in a traceback.
 
-    ``ValueError``, ``TypeError`` and ``OSError`` (missing file, permission) raised by the
-    command are printed as ``error: <message>`` on stderr (newlines folded) and the command
-    exits with code 2. ``typer.Exit``/``typer.Abort`` pass through; any other exception is a
-    bug and propagates with its traceback. Set ``CODESIGN_DEBUG=1`` to re-raise everything.
+    ``ValueError`` and ``OSError`` (bad value, missing file) are printed as
+    ``error: <message>`` on stderr and exit with code 2. Any other exception (``TypeError``
+    included) is a bug: it is shown as ``error: unexpected <Type>: <message>`` with a pointer
+    to ``--debug`` and exits with code 1. Ctrl-C says so and exits with 130.
+    ``typer.Exit``/``typer.Abort`` pass through. ``codesign --debug`` (or ``CODESIGN_DEBUG=1``)
+    re-raises everything with its traceback.
 
     Put it *below* ``@app.command()``: it keeps the signature (``functools.wraps``), so typer
     still sees the options.
@@ -116,11 +123,27 @@ def cli_errors(func: Callable[P, R]) -> Callable[P, R]:
     def wrapper(*args: P.args, **kwargs: P.kwargs) -> R:
         try:
             return func(*args, **kwargs)
+        except (typer.Exit, typer.Abort, click.exceptions.ClickException):
+            raise
+        except KeyboardInterrupt:
+            if os.environ.get("CODESIGN_DEBUG"):
+                raise
+            typer.echo("interrupted", err=True)
+            raise typer.Exit(code=INTERRUPTED_EXIT_CODE) from None
         except _USER_ERRORS as exc:
             if os.environ.get("CODESIGN_DEBUG"):
                 raise
             typer.echo(f"error: {_one_line(exc)}", err=True)
             raise typer.Exit(code=USAGE_ERROR_EXIT_CODE) from None
+        except Exception as exc:
+            if os.environ.get("CODESIGN_DEBUG"):
+                raise
+            typer.echo(
+                f"error: unexpected {type(exc).__name__}: {_one_line(exc)} (a bug; run "
+                "`codesign --debug ...` for the traceback and report it)",
+                err=True,
+            )
+            raise typer.Exit(code=BUG_EXIT_CODE) from None
 
     return wrapper
 

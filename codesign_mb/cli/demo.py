@@ -29,111 +29,104 @@ from codesign_mb.cli.common import (
     progress_bar,
 )
 
-__all__ = ["SCENARIOS", "register"]
+__all__ = ["SCENARIOS", "demo", "register"]
 
 SCENARIOS: tuple[str, ...] = ("robot", "lqg")
 """The scenarios ``--scenario`` accepts; the first is the default."""
 
 
-def register(app: typer.Typer) -> None:
-    """Add ``codesign demo`` to ``app``."""
-
-    @app.command()
-    @cli_errors
-    def demo(
-        ctx: typer.Context,
-        scenario: Annotated[
-            str, typer.Option("--scenario", help=f"Scenario to run: {', '.join(SCENARIOS)}.")
-        ] = SCENARIOS[0],
-        plant: Annotated[
-            str | None,
-            typer.Option(
-                "--plant",
-                help="Linear plant of the lqg scenario: scalar, double_integrator or pendulum "
-                "(default pendulum).",
-                show_default=False,
-            ),
-        ] = None,
-        reliability: Annotated[
-            list[float] | None,
-            typer.Option(
-                "--reliability",
-                "-q",
-                help="Link reliability q in [0, 1]; repeat for several "
-                "(default 1, 0.9, 0.7, 0.5, 0.3).",
-                show_default=False,
-            ),
-        ] = None,
-        latency: Annotated[
-            int | None,
-            typer.Option(
-                "--latency",
-                help="Link latency tau in steps of 40 ms (default: robot 1, lqg 0).",
-                show_default=False,
-            ),
-        ] = None,
-        episodes: Annotated[
-            int | None,
-            typer.Option(
-                "--episodes",
-                "-n",
-                help="Seeded episodes per reliability (default: the scenario's).",
-                show_default=False,
-            ),
-        ] = None,
-        horizon: Annotated[
-            int | None,
-            typer.Option(
-                "--horizon", help="Steps per episode, lqg (default 250).", show_default=False
-            ),
-        ] = None,
-        seed: SeedOption = 0,
-        config: ConfigOption = None,
-        as_json: JsonOption = False,
-    ) -> None:
-        """MPC + predictor picking off the conveyor (default), or LQG (--scenario lqg) vs q."""
-        if scenario not in SCENARIOS:
-            raise ValueError(f"scenario must be one of {', '.join(SCENARIOS)}, got {scenario!r}")
-        lqg_only = explicit(ctx, {"plant": plant, "horizon": horizon})
-        if scenario == "robot" and lqg_only and not explicit(ctx, {"scenario": scenario}):
-            scenario = "lqg"  # the LQG-only options --plant/--horizon select that scenario
-        if scenario == "robot":  # MPC + predictor on the conveyor (part MPC's module)
-            _robot_demo(
-                ctx,
-                config=config,
-                reliability=reliability,
-                latency=latency,
-                episodes=episodes,
-                seed=seed,
-                as_json=as_json,
-            )
-            return
-        overrides = explicit(
+def demo(
+    ctx: typer.Context,
+    scenario: Annotated[
+        str, typer.Option("--scenario", help=f"Scenario to run: {', '.join(SCENARIOS)}.")
+    ] = SCENARIOS[0],
+    plant: Annotated[
+        str | None,
+        typer.Option(
+            "--plant",
+            help="Linear plant of the lqg scenario: scalar, double_integrator or pendulum "
+            "(default pendulum).",
+            show_default=False,
+        ),
+    ] = None,
+    reliability: Annotated[
+        list[float] | None,
+        typer.Option(
+            "--reliability",
+            "-q",
+            help="Link reliability q in [0, 1]; repeat for several "
+            "(default 1, 0.9, 0.7, 0.5, 0.3).",
+            show_default=False,
+        ),
+    ] = None,
+    latency: Annotated[
+        int | None,
+        typer.Option(
+            "--latency",
+            help="Link latency tau in steps of 40 ms (default: robot 1, lqg 0).",
+            show_default=False,
+        ),
+    ] = None,
+    episodes: Annotated[
+        int | None,
+        typer.Option(
+            "--episodes",
+            "-n",
+            help="Seeded episodes per reliability (default: the scenario's).",
+            show_default=False,
+        ),
+    ] = None,
+    horizon: Annotated[
+        int | None,
+        typer.Option("--horizon", help="Steps per episode, lqg (default 250).", show_default=False),
+    ] = None,
+    seed: SeedOption = 0,
+    config: ConfigOption = None,
+    as_json: JsonOption = False,
+) -> None:
+    """MPC + predictor picking off the conveyor (default), or LQG (--scenario lqg) vs q."""
+    if scenario not in SCENARIOS:
+        raise ValueError(f"scenario must be one of {', '.join(SCENARIOS)}, got {scenario!r}")
+    lqg_only = explicit(ctx, {"plant": plant, "horizon": horizon})
+    if scenario == "robot" and lqg_only and not explicit(ctx, {"scenario": scenario}):
+        scenario = "lqg"  # the LQG-only options --plant/--horizon select that scenario
+    if scenario == "robot":  # MPC + predictor on the conveyor (part MPC's module)
+        _robot_demo(
             ctx,
-            {
-                "plant": plant,
-                "reliabilities": tuple(reliability) if reliability else None,
-                "latency_steps": latency,
-                "episodes": episodes,
-                "horizon": horizon,
-                "seed": seed,
-            },
+            config=config,
+            reliability=reliability,
+            latency=latency,
+            episodes=episodes,
+            seed=seed,
+            as_json=as_json,
         )
-        from codesign_mb.studies.demo import LqgDemoConfig, run_lqg_demo
+        return
+    overrides = explicit(
+        ctx,
+        {
+            "plant": plant,
+            "reliabilities": tuple(reliability) if reliability else None,
+            "latency_steps": latency,
+            "episodes": episodes,
+            "horizon": horizon,
+            "seed": seed,
+        },
+    )
+    from codesign_mb.studies.demo import LqgDemoConfig, run_lqg_demo
 
-        cfg = load_config(LqgDemoConfig, config, overrides, section="demo")
-        with progress_bar(f"LQG on {cfg.plant}", disable=as_json) as progress:
-            result = run_lqg_demo(cfg, progress=progress)
-        if as_json:
-            emit(result, as_json=True)
-            return
-        title = (
-            f"LQG on {result['plant']} over a Bernoulli link, tau = {cfg.latency_steps}: "
-            f"{cfg.episodes} episodes x {cfg.horizon} steps; Riccati cost at q = 1: "
-            f"{result['riccati_cost']:.4g}; critical q >= "
-            f"{result['critical_reliability_lower_bound']:.3f}"
-        )
-        emit(result["rows"], as_json=False, title=title)
+    cfg = load_config(LqgDemoConfig, config, overrides, section="demo")
+    with progress_bar(f"LQG on {cfg.plant}", disable=as_json) as progress:
+        result = run_lqg_demo(cfg, progress=progress)
+    if as_json:
+        emit(result, as_json=True)
+        return
+    title = (
+        f"LQG on {result['plant']} over a Bernoulli link, tau = {cfg.latency_steps}: "
+        f"{cfg.episodes} episodes x {cfg.horizon} steps; Riccati cost at q = 1: "
+        f"{result['riccati_cost']:.4g}; critical q >= "
+        f"{result['critical_reliability_lower_bound']:.3f}"
+    )
+    emit(result["rows"], as_json=False, title=title)
 
 
 def _robot_demo(
@@ -184,3 +177,8 @@ def _robot_demo(
         "delay-compensating Kalman prediction, none = stale observation)"
     )
     emit(rows, as_json=False, title=title)
+
+
+def register(app: typer.Typer) -> None:
+    """Add ``codesign demo`` to ``app``."""
+    app.command()(cli_errors(demo))

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Annotated
 
 import typer
 
@@ -40,27 +40,7 @@ def register(app: typer.Typer) -> None:
 
         Prints the optimum (frames, fractional), the solver and its solve time in seconds.
         """
-        from codesign_mb.wifi.offline import offline_optimum
-        from codesign_mb.wifi.sim import Trace, replay
+        from codesign_mb.studies.offline_lp import solve_instance
 
-        trace = Trace.load(instance)
-        result = offline_optimum(trace, solver=solver)
-        record: dict[str, Any] = {
-            "instance": str(instance),
-            "optimum_frames": result.optimum,
-            "solver": result.solver,
-            "solve_time_s": result.solve_time_s,
-            "status": result.status,
-            "frames_admitted": result.n_frames_admitted,
-            "frames_deliverable": result.n_frames,
-            "variables": result.n_variables,
-            "constraints": result.n_constraints,
-        }
-        if compare:
-            for name in ("greedy", "convex"):
-                delivered = replay(trace, name).delivered
-                record[f"{name}_frames"] = delivered
-                record[f"{name}_gap"] = (
-                    (result.optimum - delivered) / result.optimum if result.optimum > 0 else 0.0
-                )
+        record = solve_instance(instance, solver=solver, compare=compare)
         emit(record, as_json=as_json, title="offline allocation LP")

@@ -166,7 +166,7 @@ def kinds(role: str) -> tuple[str, ...]:
 
 
 def _kind(role: str, kind: str) -> Kind:
-    table = KINDS[role] if role in KINDS else {}
+    table = KINDS.get(role, {})
     if not table:
         kinds(role)  # raises, naming the roles
     if kind not in table:

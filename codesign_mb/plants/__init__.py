@@ -1,11 +1,19 @@
-"""Plants: linear plants (python-control) and the MuJoCo conveyor pick-and-place env."""
+"""Plants: linear plants (python-control), the MuJoCo conveyor pick-and-place, a kinematic toy.
+
+Each is registered with Gymnasium, so ``gymnasium.make("codesign_mb/ConveyorPickPlace-v0")``
+(or ``ToyConveyor-v0``, ``LinearPlant-v0`` with ``plant="pendulum"`` ...) gives it with its
+spec. Entry points are strings: importing this package imports neither MuJoCo nor
+python-control.
+"""
 
 import gymnasium as _gym
 
-# The conveyor env (part ROBOT); the entry point is a string so that importing this package
-# does not import MuJoCo.
-if "codesign_mb/ConveyorPickPlace-v0" not in _gym.registry:
-    _gym.register(
-        id="codesign_mb/ConveyorPickPlace-v0",
-        entry_point="codesign_mb.plants.conveyor:ConveyorPickPlace",
-    )
+_ENVS = {
+    "codesign_mb/ConveyorPickPlace-v0": "codesign_mb.plants.conveyor:ConveyorPickPlace",
+    "codesign_mb/ToyConveyor-v0": "codesign_mb.plants.toy:ToyConveyor",
+    "codesign_mb/LinearPlant-v0": "codesign_mb.plants.linear:make_linear_env",
+}
+
+for _id, _entry_point in _ENVS.items():
+    if _id not in _gym.registry:
+        _gym.register(id=_id, entry_point=_entry_point)

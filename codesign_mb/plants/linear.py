@@ -49,6 +49,7 @@ __all__ = [
     "LinearPlantSpec",
     "double_integrator",
     "inverted_pendulum",
+    "make_linear_env",
     "make_linear_plant",
     "scalar_unstable",
 ]
@@ -368,6 +369,14 @@ def make_linear_plant(name: str) -> LinearPlantSpec:
             f"plant must be one of {', '.join(sorted(LINEAR_PLANTS))}, got {name!r}"
         ) from None
     return factory()
+
+
+def make_linear_env(plant: str = "pendulum", **options: Any) -> LinearPlantEnv:
+    """The linear plant ``plant`` of :data:`LINEAR_PLANTS` as an env (Gymnasium entry point).
+
+    ``options`` are :class:`LinearPlantEnv`'s keyword arguments (``horizon``, ``x0_cov``, ...).
+    """
+    return LinearPlantEnv(make_linear_plant(plant), **options)
 
 
 @dataclass(eq=False)

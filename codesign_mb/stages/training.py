@@ -6,9 +6,10 @@ A run has two folders:
   its replay buffer and ``state.json`` (steps done, wall time, training curve). Training
   proceeds in chunks of ``chunk_steps`` env steps; after each chunk all three are written
   (atomically), so an interrupted run resumes from the last chunk with ``resume=True``;
-* the **output folder** (e.g. ``models/checkpoints/stage_a``, shipped): the final
-  ``model.zip``, ``training.json`` (command, seed, env steps, wall time, config, final
-  evaluation) and ``curve.json``.
+* the **output folder** (default ``runs/checkpoints/stage_a``; the shipped ones are in
+  ``models/checkpoints``): the final ``model.zip``, ``training.json`` (command, seed, env
+  steps, wall time, config, final evaluation; checkpoint paths portable, see
+  :mod:`~codesign_mb.stages.paths`) and ``curve.json``.
 
 No RL algorithm is written here: this is SB3's :class:`~stable_baselines3.SAC` driven by
 ``learn(chunk, reset_num_timesteps=False)``.
@@ -30,6 +31,7 @@ import numpy as np
 
 from codesign_mb.core.config import to_mapping
 from codesign_mb.core.results import atomic_write, package_version, to_jsonable
+from codesign_mb.stages.paths import portable_paths
 
 __all__ = [
     "Progress",
@@ -38,6 +40,8 @@ __all__ = [
     "load_state",
     "make_sac",
     "no_progress",
+    "require_at_least",
+    "stage_seeds",
     "train_sac_in_chunks",
     "write_json",
     "write_output",
@@ -52,6 +56,26 @@ def no_progress(
 ) -> Iterator[Any]:
     """The silent :data:`Progress` (library default)."""
     yield from iterable
+
+
+def require_at_least(config: Any, minimum: float, *names: str, prefix: str = "") -> None:
+    """Raise ``ValueError`` naming the first field of ``config`` in ``names`` below ``minimum``.
+
+    The stages' configs validate their counts with it: "total_steps must be >= 1, got 0".
+    """
+    for name in names:
+        value = getattr(config, name)
+        if value < minimum:
+            raise ValueError(f"{prefix}{name} must be >= {minimum}, got {value}")
+
+
+def stage_seeds(seed: int, n: int) -> list[int]:
+    """The episode seeds of a stage's collection or evaluation: ``SeedSequence(seed)``'s state.
+
+    The stages' own scheme (the shipped checkpoints were trained with it), distinct from the
+    evaluation protocol's :func:`~codesign_mb.core.seeds.episode_seeds`.
+    """
+    return [int(s) for s in np.random.SeedSequence(seed).generate_state(max(n, 1))[:n]]
 
 
 @dataclass(frozen=True)
@@ -73,11 +97,8 @@ class SacSpec:
     ent_coef: str = "auto"
 
     def __post_init__(self) -> None:
-        for name in ("buffer_size", "batch_size", "train_freq"):
-            if getattr(self, name) < 1:
-                raise ValueError(f"sac.{name} must be >= 1, got {getattr(self, name)}")
-        if self.learning_starts < 0:
-            raise ValueError(f"sac.learning_starts must be >= 0, got {self.learning_starts}")
+        require_at_least(self, 1, "buffer_size", "batch_size", "train_freq", prefix="sac.")
+        require_at_least(self, 0, "learning_starts", prefix="sac.")
         if self.gradient_steps == 0 or self.gradient_steps < -1:
             raise ValueError(f"sac.gradient_steps must be >= 1 or -1, got {self.gradient_steps}")
         if not 0 < self.gamma <= 1:
@@ -274,7 +295,10 @@ def write_output(
     final: Mapping[str, Any] | None = None,
     notes: str = "",
 ) -> Path:
-    """Write the shipped checkpoint folder: ``model.zip``, ``training.json``, ``curve.json``."""
+    """Write the checkpoint folder: ``model.zip``, ``training.json``, ``curve.json``.
+
+    Checkpoint paths in ``training.json`` are portable (:func:`~codesign_mb.stages.paths.portable_paths`).
+    """
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -292,7 +316,7 @@ def write_output(
         "config": to_mapping(config),
         **state.extra,
     }
-    write_json(out_dir / "training.json", meta)
+    write_json(out_dir / "training.json", portable_paths(meta, out_dir))
     write_json(out_dir / "curve.json", state.curve)
     return out_dir
 

@@ -22,7 +22,6 @@ A frame's fate on each hop is drawn when it is admitted, with that hop's deliver
 
 from __future__ import annotations
 
-from collections import defaultdict
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -33,7 +32,8 @@ from numpy.typing import ArrayLike, NDArray
 from codesign_mb.network.link import ObservationBuffer, Packet, Reception
 from codesign_mb.network.qos import QosRequest
 from codesign_mb.wifi.config import WifiConfig, make_allocator
-from codesign_mb.wifi.sim import ChannelEngine, Frame, Trace
+from codesign_mb.wifi.engine import ChannelEngine, FallbackCount, Frame
+from codesign_mb.wifi.sim import Trace
 from codesign_mb.wifi.traffic import drop_probability
 
 __all__ = [
@@ -107,13 +107,20 @@ class _TraceRecorder:
 
 @dataclass
 class _Station:
+    """One robot in the cell: its step, frame-dropping stream, observation buffer, tallies."""
+
+    rng: np.random.Generator
+    buffer: ObservationBuffer
     t: int = 0
     active: bool = True
-    rng: np.random.Generator | None = None
-    buffer: ObservationBuffer | None = None
     requested: float = 0.0
     admitted: int = 0
     steps: int = 0
+
+    def restart(self, rng: np.random.Generator, buffer: ObservationBuffer) -> None:
+        """Start a new episode with these stream and buffer."""
+        self.rng, self.buffer = rng, buffer
+        self.t, self.active, self.requested, self.admitted, self.steps = 0, True, 0.0, 0, 0
 
 
 class SharedChannel:
@@ -130,6 +137,9 @@ class SharedChannel:
         stations' frame-dropping streams; :meth:`reset` may replace it.
     scheduler:
         Overrides ``config.scheduler``.
+
+    The episode's results: :meth:`summary` (per station), :attr:`fallbacks` (ticks whose
+    allocator could not use its solver's solution) and :meth:`trace`.
 
     Examples
     --------
@@ -165,7 +175,6 @@ class SharedChannel:
         self.ul_bits = config.mac.psdu_bits(config.traffic.ul_frame_bytes)
         self.dl_bits = config.mac.psdu_bits(config.traffic.dl_frame_bytes)
         self.links: tuple[WifiLink, ...] = tuple(WifiLink(self, i) for i in range(n_stations))
-        self._stations = [_Station() for _ in range(n_stations)]
         self.reset(seed=seed)
 
     # ------------------------------------------------------------------ episodes
@@ -185,10 +194,9 @@ class SharedChannel:
             make_allocator(self.config, self.n, self.scheduler),
         )
         self._recorder = _TraceRecorder()
-        for i, st in enumerate(self._stations):
-            st.t, st.active, st.requested, st.admitted, st.steps = 0, True, 0.0, 0, 0
-            st.rng = np.random.default_rng(self._drop_seeds[i])
-            st.buffer = ObservationBuffer()
+        self._stations = [
+            _Station(np.random.default_rng(s), ObservationBuffer()) for s in self._drop_seeds
+        ]
         self._frames: list[Frame] = []
 
     @property
@@ -251,7 +259,6 @@ class SharedChannel:
             )
             st.admitted += 1
         buffer = st.buffer
-        assert buffer is not None
         arrived = self.engine.delivered[station]
         for frame in arrived:
             buffer.push(Packet(frame.step, frame.value), t)
@@ -275,6 +282,11 @@ class SharedChannel:
         table["distance_m"] = self.process.distances_m
         table["offset_ticks"] = self.offsets
         return table
+
+    @property
+    def fallbacks(self) -> FallbackCount:
+        """Ticks of this episode whose allocator fell back from its solver (UL, DL)."""
+        return self.engine.fallbacks
 
     def trace(self) -> Trace:
         """The episode so far as a :class:`Trace` (admitted frames and channel per tick)."""
@@ -306,13 +318,11 @@ class WifiLink:
         channel of a single-station cell: a single-robot episode is reproducible from its seed.
         """
         ch = self.channel
-        st = ch._stations[self.index]
-        if st.t > 0 or (ch.n == 1 and seed is not None):
+        if ch._stations[self.index].t > 0 or (ch.n == 1 and seed is not None):
             ch.reset(seed=seed)  # this robot starts a new episode: so does the channel
-        st.t, st.active, st.requested, st.admitted, st.steps = 0, True, 0.0, 0, 0
-        if seed is not None:
-            st.rng = np.random.default_rng(seed)
-        st.buffer = ObservationBuffer(prior)
+        st = ch._stations[self.index]
+        rng = st.rng if seed is None else np.random.default_rng(seed)
+        st.restart(rng, ObservationBuffer(prior))
 
     def step(self, state: ArrayLike, qos: QosRequest) -> Reception:
         value = np.array(state, dtype=float)
@@ -345,8 +355,10 @@ def generate_trace(
     channel = SharedChannel(config, n_stations, seed=seed, scheduler="greedy")
     for link in channel.links:
         link.reset(prior=np.zeros(1))
-    engine_free = _NullEngine()
-    channel.engine = engine_free  # traffic only: no allocation needed to record a trace
+    engine = channel.engine  # traffic only: no allocation needed to record a trace
+    channel.engine = _TrafficOnlyEngine(
+        config, n_stations, engine.ul_allocator, engine.dl_allocator
+    )
     for _ in range(steps):
         for i in channel.step_order:
             channel._submit(i, np.zeros(1), QosRequest(float(q[i]), latency_steps))
@@ -356,18 +368,11 @@ def generate_trace(
     return channel.trace()
 
 
-class _NullEngine:
-    """Stands in for :class:`ChannelEngine` when only the traffic and the channel are wanted."""
-
-    def __init__(self) -> None:
-        self.tick = 0
-        self.delivered: defaultdict[int, list[Frame]] = defaultdict(list)
+class _TrafficOnlyEngine(ChannelEngine):
+    """A :class:`ChannelEngine` whose clock runs but that queues and serves nothing."""
 
     def add(self, frame: Frame) -> None:
         return None
 
-    def run_tick(self, ul: NDArray, dl: NDArray) -> None:
+    def run_tick(self, ul_bpss: NDArray, dl_bpss: NDArray) -> None:
         self.tick += 1
-
-    def drop_station(self, station: int) -> None:
-        return None

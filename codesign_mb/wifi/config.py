@@ -5,14 +5,11 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from codesign_mb.core import registry
-from codesign_mb.wifi.allocators import (
-    Allocator,
-    ConvexAllocator,
-    ConvexAllocatorConfig,
-    GreedyEdfAllocator,
-)
+from codesign_mb.wifi.allocators import Allocator, GreedyEdfAllocator
 from codesign_mb.wifi.channel import ChannelConfig
-from codesign_mb.wifi.phy import MacTiming, PhyConfig
+from codesign_mb.wifi.convex import ConvexAllocator, ConvexAllocatorConfig
+from codesign_mb.wifi.mac import MacTiming
+from codesign_mb.wifi.phy import PhyConfig
 from codesign_mb.wifi.traffic import TrafficConfig
 
 __all__ = ["SCHEDULERS", "WifiConfig", "make_allocator"]

@@ -1,0 +1,227 @@
+"""What Table I compares: rows (a ``{controller, estimator, qos}`` triple) and plants.
+
+:func:`model_free_rows` are the paper's Table I rows, :func:`model_based_rows` their
+model-based counterparts (MPC, the delay-compensating predictor, the covariance rule) and
+:func:`all_rows` the head-to-head grid; :data:`PIPELINES` names them. :data:`PLANT_PRESETS`
+are the conveyor plants of the tables (both belt speeds of the paper and the variable belt),
+:data:`PIPELINE_PLANTS` each pipeline's default ones. The run is
+:func:`codesign_mb.studies.table.run_table`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+from codesign_mb.core.config import from_mapping
+from codesign_mb.core.registry import ComponentSpec, PlantSpec
+from codesign_mb.plants.conveyor import ConveyorConfig
+
+__all__ = [
+    "MPC_RULE_THRESHOLD_M",
+    "PIPELINES",
+    "PIPELINE_PLANTS",
+    "PLANT_PRESETS",
+    "TablePlant",
+    "TableRow",
+    "all_rows",
+    "model_based_rows",
+    "model_free_rows",
+    "stack_of",
+]
+
+
+@dataclass(frozen=True)
+class TableRow:
+    """One row: a name, the three components, and the paper's figures for it (if any)."""
+
+    name: str
+    controller: ComponentSpec
+    estimator: ComponentSpec
+    qos: ComponentSpec
+    paper_success_rate: float | None = None
+    paper_mean_reliability: float | None = None
+
+    def __post_init__(self) -> None:
+        for role in ("controller", "estimator", "qos"):
+            value = getattr(self, role)
+            if isinstance(value, Mapping):
+                object.__setattr__(
+                    self, role, from_mapping(ComponentSpec, value, where=f"rows.{role}")
+                )
+
+
+@dataclass(frozen=True)
+class TablePlant:
+    """A plant of the table, with the label of its ``plant`` column.
+
+    Parameters
+    ----------
+    label:
+        Shown in the ``plant`` column and the figures, e.g. ``"0.2 m/s"``.
+    name, options:
+        The :class:`~codesign_mb.core.registry.PlantSpec`.
+    """
+
+    label: str
+    name: str = "conveyor"
+    options: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.label, str) or not self.label:
+            raise ValueError(f"plant label must be a non-empty string, got {self.label!r}")
+        self.spec  # validates name and options  # noqa: B018
+
+    @property
+    def spec(self) -> PlantSpec:
+        return PlantSpec(self.name, dict(self.options))
+
+    @classmethod
+    def of(cls, spec: PlantSpec) -> TablePlant:
+        """A plant labelled from its spec: ``"0.2 m/s"``, ``"variable (0.6 m/s)"``, ``"toy"``."""
+        options = dict(spec.options)
+        label = spec.name
+        if spec.name == "conveyor":
+            config = from_mapping(ConveyorConfig, options, where="plant.options")
+            label = f"{config.belt_speed_mps:g} m/s"
+            if config.belt_profile != "constant":
+                label = f"{config.belt_profile} ({label})"
+        return cls(label, spec.name, options)
+
+
+PLANT_PRESETS: dict[str, TablePlant] = {
+    "0.2": TablePlant("0.2 m/s", options={"belt_speed_mps": 0.2}),
+    "0.6": TablePlant("0.6 m/s", options={"belt_speed_mps": 0.6}),
+    "variable": TablePlant(
+        "variable (0.6 m/s)", options={"belt_speed_mps": 0.6, "belt_profile": "variable"}
+    ),
+}
+"""The conveyor plants of the tables, by the name ``--plant`` and ``plants`` take: both belt
+speeds of the paper and the variable belt (seeded speed steps and stops around 0.6 m/s)."""
+
+
+# -- rows -------------------------------------------------------------------------------------
+_SAC = ComponentSpec("sac", "checkpoints/stage_a/model.zip")
+_MLP = ComponentSpec("mlp", "checkpoints/stage_d/mlp.pt")
+_MPC = ComponentSpec("mpc")
+_PREDICTOR = ComponentSpec("predictor")
+_STATIC = ComponentSpec("static", options={"reliability": 1.0, "latency_steps": 1})
+
+MPC_RULE_THRESHOLD_M = 0.08
+"""Trigger of the model-based co-design rule: tuned by bisection for >= 98 % success at
+0.2 m/s (`tune_threshold`; see the note in README.md)."""
+
+
+def _rule() -> ComponentSpec:
+    return ComponentSpec("rule", options={"threshold_m": MPC_RULE_THRESHOLD_M, "low": 0.0})
+
+
+def model_free_rows() -> tuple[TableRow, ...]:
+    """The paper's Table I rows, from the shipped checkpoints (latency fixed at one step)."""
+    return (
+        TableRow("MLP estimator, static QoS", _SAC, _MLP, _STATIC, 1.00, 1.00),
+        TableRow(
+            "no estimator, dynamic QoS",
+            _SAC,
+            ComponentSpec("none"),
+            ComponentSpec("learned", "checkpoints/stage_c_none"),
+            0.78,
+            0.52,
+        ),
+        TableRow(
+            "MLP estimator, dynamic QoS (co-design)",
+            _SAC,
+            _MLP,
+            ComponentSpec("learned", "checkpoints/stage_d/qos"),
+            0.98,
+            0.13,
+        ),
+    )
+
+
+def model_based_rows() -> tuple[TableRow, ...]:
+    """The model-based counterparts of Table I: MPC, the predictor, the covariance rule."""
+    return (
+        TableRow("MPC + predictor, static QoS", _MPC, _PREDICTOR, _STATIC),
+        TableRow("MPC, no estimator, rule QoS", _MPC, ComponentSpec("none"), _rule()),
+        TableRow("MPC + predictor, rule QoS (co-design)", _MPC, _PREDICTOR, _rule()),
+    )
+
+
+def all_rows() -> tuple[TableRow, ...]:
+    """The head-to-head rows: {static, rule, SAC} QoS x {SAC + MLP, MPC + predictor}, ...
+
+    ... the mixed pairs with the QoS policies that do not depend on who they serve (SAC +
+    predictor and MPC + MLP, static and rule QoS; a SAC QoS policy is trained for one
+    controller and estimator), and the no-estimator rows (the paper's "no estimator, dynamic
+    QoS" and its model-based counterpart). The model-free stack uses stage D's estimator and
+    QoS policy (the paper's final synthesis), the model-based SAC QoS is stage C on MPC +
+    predictor (``checkpoints/stage_c_mpc``, features ``predictor_std``).
+    """
+    rule = _rule()
+    return (
+        TableRow("SAC + MLP, static QoS", _SAC, _MLP, _STATIC, 1.00, 1.00),
+        TableRow("SAC + MLP, rule QoS", _SAC, _MLP, rule),
+        TableRow(
+            "SAC + MLP, SAC QoS",
+            _SAC,
+            _MLP,
+            ComponentSpec("learned", "checkpoints/stage_d/qos"),
+            0.98,
+            0.13,
+        ),
+        TableRow(
+            "SAC, no estimator, SAC QoS",
+            _SAC,
+            ComponentSpec("none"),
+            ComponentSpec("learned", "checkpoints/stage_c_none"),
+            0.78,
+            0.52,
+        ),
+        TableRow("MPC + predictor, static QoS", _MPC, _PREDICTOR, _STATIC),
+        TableRow("MPC + predictor, rule QoS", _MPC, _PREDICTOR, rule),
+        TableRow(
+            "MPC + predictor, SAC QoS",
+            _MPC,
+            _PREDICTOR,
+            ComponentSpec("learned", "checkpoints/stage_c_mpc"),
+        ),
+        TableRow("MPC, no estimator, rule QoS", _MPC, ComponentSpec("none"), rule),
+        TableRow("SAC + predictor, static QoS", _SAC, _PREDICTOR, _STATIC),
+        TableRow("SAC + predictor, rule QoS", _SAC, _PREDICTOR, rule),
+        TableRow("MPC + MLP, static QoS", _MPC, _MLP, _STATIC),
+        TableRow("MPC + MLP, rule QoS", _MPC, _MLP, rule),
+    )
+
+
+PIPELINES: dict[str, Callable[[], tuple[TableRow, ...]]] = {
+    "model-free": model_free_rows,
+    "model-based": model_based_rows,
+    "all": all_rows,
+}
+"""Pipeline name -> its default rows."""
+
+PIPELINE_PLANTS: dict[str, tuple[str, ...]] = {
+    "model-free": ("0.2",),
+    "model-based": ("0.2",),
+    "all": ("0.2", "0.6", "variable"),
+}
+"""Pipeline name -> its default plants (keys of :data:`PLANT_PRESETS`); the paper's Table I
+is at 0.2 m/s."""
+
+_LEARNED_CONTROLLERS = ("sac",)
+_LEARNED_ESTIMATORS = ("mlp", "lstm")
+_MODEL_BASED = ("mpc", "predictor", "scripted", "toy_pick")
+
+
+def stack_of(row: TableRow) -> str:
+    """``"model-free"`` (learned controller, learned or no estimator), ``"model-based"`` (a
+    model-based controller with a model-based or no estimator) or ``"mixed"``."""
+    c, e = row.controller.kind, row.estimator.kind
+    no_estimator = e == "none"
+    if c in _LEARNED_CONTROLLERS and (e in _LEARNED_ESTIMATORS or no_estimator):
+        return "model-free"
+    if c in _MODEL_BASED and (e in _MODEL_BASED or no_estimator):
+        return "model-based"
+    return "mixed"

@@ -1,0 +1,389 @@
+"""The convex RU allocator: admission control, the QP relaxation ``eq_qp``, rounding.
+
+Per tick, :class:`ConvexAllocator` admits the head frames that earliest-deadline-first can
+still finish in time (``eq_admit``, :mod:`codesign_mb.wifi.admission`), solves the relaxation
+``eq_qp`` over fractional RU assignments by size class for the admitted stations
+(:mod:`codesign_mb.wifi.convex_qp`: built once, as cvxpy ``Parameter``s (DPP) and as an OSQP
+workspace whose ``P`` and ``A`` stay fixed while only ``q, u`` change per tick, the hot path),
+and rounds the fractional solution to a valid layout (``eq_round``).
+
+Rounding (``eq_round``)
+-----------------------
+Admitted stations in deadline order get the smallest RU carrying their must-serve share
+``T_i`` (best fit; the largest free smaller one if none), then RUs grow in place (or stations
+are seated) towards the relaxed service ``(t_i + z_i) S``, then towards the whole backlog,
+admitted stations first, rejected ones after, each group in deadline order.
+
+Solver failures
+---------------
+After every solve the solver's status is checked. When the solution cannot be used (a failed
+status, values that are not finite), the tick falls back to zero relaxed service: the rounding
+still gives the admitted frames their must-serve shares ``T_i`` (which come from ``eq_admit``,
+not from the solver), then spreads the spectrum towards the backlog. The allocator counts
+these ticks (:attr:`ConvexAllocator.fallbacks`, :attr:`ConvexAllocator.last_fallback_reason`);
+the simulator reports them (:attr:`codesign_mb.wifi.engine.ChannelEngine.fallbacks`).
+"""
+
+from __future__ import annotations
+
+import bisect
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from codesign_mb.wifi.admission import admit_lists, must_serve_lists
+from codesign_mb.wifi.allocators import RuPacker, TickDemand
+from codesign_mb.wifi.convex_qp import CvxpyQp, OsqpQp, QpShape
+from codesign_mb.wifi.phy import ru_plan
+
+__all__ = ["ConvexAllocator", "ConvexAllocatorConfig"]
+
+
+@dataclass(frozen=True)
+class ConvexAllocatorConfig:
+    """Settings of :class:`ConvexAllocator`.
+
+    Parameters
+    ----------
+    bandwidth_mhz:
+        Channel width (20, 40, 80).
+    n_stations:
+        Most stations a demand may have (the cvxpy model's size; the hot path builds OSQP
+        models sized to the admitted stations, in a few bucket sizes up to this).
+    regularization:
+        ``rho`` of ``eq_qp``: makes the optimum unique (hot path == cvxpy) and OSQP fast.
+    surplus_weight:
+        ``beta``: value of service ahead of need of the earliest-deadline admitted frame,
+        relative to must-serve service (``a = 1``); in (0, 1).
+    surplus_decay:
+        ``gamma``: each later deadline's surplus value is this times the previous one's.
+    admission:
+        Admission control (``eq_admit``). ``False``: every frame that can make its deadline
+        alone is admitted.
+    admission_capacity:
+        ``c``: full bands per tick the admission test assumes (below 1 leaves a margin for
+        RU packing losses and ticks shortened by a downlink exchange).
+    eps:
+        OSQP absolute and relative tolerance (the hot path; the relaxation only picks RU sizes,
+        and 1 % of the band is a fifth of the smallest RU of 40 MHz).
+    max_iter:
+        OSQP iteration cap per tick.
+    hot_path:
+        ``True``: OSQP called directly (fast). ``False``: the cvxpy model (reference).
+    cvxpy_solver:
+        Solver of the cvxpy path (``"OSQP"``, ``"CLARABEL"``).
+    """
+
+    bandwidth_mhz: int = 40
+    n_stations: int = 24
+    regularization: float = 1e-2
+    surplus_weight: float = 0.5
+    surplus_decay: float = 0.5
+    admission: bool = True
+    admission_capacity: float = 0.95
+    eps: float = 1e-2
+    max_iter: int = 200
+    hot_path: bool = True
+    cvxpy_solver: str = "OSQP"
+
+    def __post_init__(self) -> None:
+        ru_plan(self.bandwidth_mhz)  # validates bandwidth_mhz
+        if isinstance(self.n_stations, bool) or not isinstance(self.n_stations, int):
+            raise ValueError(f"n_stations must be an integer, got {self.n_stations!r}")
+        if self.n_stations < 1:
+            raise ValueError(f"n_stations must be >= 1, got {self.n_stations}")
+        for name in ("regularization", "eps"):
+            value = getattr(self, name)
+            if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
+                raise ValueError(f"{name} must be > 0, got {value!r}")
+        for name in ("surplus_weight", "surplus_decay", "admission_capacity"):
+            value = getattr(self, name)
+            top = 1.0 if name == "admission_capacity" else 1.0 - 1e-12
+            if not (isinstance(value, int | float) and 0.0 < value <= top):
+                raise ValueError(
+                    f"{name} must be in (0, 1{']' if top == 1.0 else ')'}, got {value!r}"
+                )
+        if not isinstance(self.admission, bool):
+            raise ValueError(f"admission must be true or false, got {self.admission!r}")
+        if (
+            isinstance(self.max_iter, bool)
+            or not isinstance(self.max_iter, int)
+            or (self.max_iter < 1)
+        ):
+            raise ValueError(f"max_iter must be an integer >= 1, got {self.max_iter!r}")
+        if self.cvxpy_solver.upper() not in ("OSQP", "CLARABEL"):
+            raise ValueError(f"cvxpy_solver must be OSQP or CLARABEL, got {self.cvxpy_solver!r}")
+
+
+def _bucket_sizes(n: int) -> list[int]:
+    """Model sizes the hot path builds (lazily): about 1.25x apart, up to ``n``."""
+    sizes, b = [], 1
+    while b < n:
+        sizes.append(b)
+        b = max(b + 1, round(b * 1.25))
+    return [*sizes, n]
+
+
+class _Tick:
+    """Per-tick data of :class:`ConvexAllocator`: ``eq_admit`` and the weights of ``eq_qp``.
+
+    ``order`` holds the admitted stations in deadline order; they are also the QP's station
+    slots, in that order (``a``, ``b``, ``t_max``, ``z_max`` are aligned with it). ``must`` is
+    each admitted station's must-serve share of the band (``T``), ``need_sc`` every station's
+    backlog in data subcarriers.
+    """
+
+    __slots__ = ("a", "b", "m", "must", "need_sc", "order", "order_list", "rejected", "t_max",
+                 "z_max")  # fmt: skip
+
+    def __init__(self, alloc: ConvexAllocator, demand: TickDemand) -> None:
+        cfg = alloc.config
+        backlog = demand.backlog_bits
+        e = demand.bits_per_subcarrier
+        m = backlog.shape[0]
+        if m > alloc._n:
+            raise ValueError(
+                f"demand has {m} stations but the allocator was built for n_stations={alloc._n}"
+            )
+        self.m = m
+        act = np.flatnonzero((backlog > 0) & (e > 0))
+        slack_all = demand.slack_ticks[act]
+        act = act[np.argsort(slack_all, kind="stable")]  # deadline order, ties by index
+        e_act = e[act]
+        full, c = alloc._full_sd, cfg.admission_capacity
+        stations = act.tolist()
+        need = (backlog[act] / e_act).tolist()  # whole backlog in data subcarriers
+        work = (demand.head_bits[act] / (e_act * (full * c))).tolist()  # ticks at c bands/tick
+        slack = np.maximum(demand.slack_ticks[act], 1.0).tolist()
+        if cfg.admission:
+            ratio = None
+            if demand.weights is not None:
+                w = np.maximum(np.asarray(demand.weights, dtype=float)[act], 1e-12)
+                ratio = (np.asarray(work) / w).tolist()
+            keep = admit_lists(work, slack, ratio)
+        else:
+            keep = [w <= s + 1e-9 for w, s in zip(work, slack, strict=True)]
+        self.need_sc = need_sc = [0.0] * m
+        for i, x in zip(stations, need, strict=True):
+            need_sc[i] = x
+        if all(keep):
+            order, self.rejected = stations, []
+        else:
+            order = [i for i, k in zip(stations, keep, strict=True) if k]
+            self.rejected = [i for i, k in zip(stations, keep, strict=True) if not k]
+            work = [x for x, k in zip(work, keep, strict=True) if k]
+            slack = [x for x, k in zip(slack, keep, strict=True) if k]
+            need = [x for x, k in zip(need, keep, strict=True) if k]
+        self.order_list = order
+        self.order = np.array(order, dtype=np.int64)
+        j = len(order)
+        # must-serve shares T, as fractions of the band: sum <= c
+        self.must = must = [c * x for x in must_serve_lists(work, slack)]
+        self.a = alloc._ones[:j]
+        self.b = alloc._surplus[:j]
+        self.t_max = np.array(must)
+        self.z_max = np.array(
+            [max(min(x / full, 1.0) - y, 0.0) for x, y in zip(need, must, strict=True)]
+        )
+
+    def full(self, n: int) -> tuple[NDArray, NDArray, NDArray, NDArray, NDArray]:
+        """``a, b, T, Z, active`` for all ``n`` stations of the full model (0 if not in it)."""
+        out = np.zeros((5, n))
+        out[0, self.order] = self.a
+        out[1, self.order] = self.b
+        out[2, self.order] = self.t_max
+        out[3, self.order] = self.z_max
+        out[4, self.order] = 1.0
+        return out[0], out[1], out[2], out[3], out[4]
+
+
+class ConvexAllocator:
+    """Admission control (``eq_admit``) and the QP relaxation ``eq_qp``, rounded (``eq_round``).
+
+    The cvxpy model (:attr:`problem`, DPP) is built once for ``config.n_stations`` stations.
+    The hot path solves the same problem restricted to the admitted stations (the others'
+    variables are zero in the full model too, and the optimum is unique), with OSQP models of
+    a few sizes (about 1.25x apart) built on first use, each warm-started from its previous
+    solution; per tick only ``q`` and ``u`` change.
+
+    Attributes
+    ----------
+    fallbacks:
+        Ticks whose relaxed solution could not be used and were rounded from zero relaxed
+        service instead (see the module docstring).
+    last_fallback_reason:
+        The solver status of the last fallback, ``None`` before any.
+    """
+
+    def __init__(self, config: ConvexAllocatorConfig | None = None) -> None:
+        self.config = config or ConvexAllocatorConfig()
+        cfg = self.config
+        self.plan = ru_plan(cfg.bandwidth_mhz)
+        self._packer = RuPacker(self.plan)
+        sizes = self.plan.sizes
+        self._n, self._k = cfg.n_stations, len(sizes)
+        self._full_sd = float(self.plan.full_band_data_subcarriers)
+        self._shape = QpShape(
+            frac_sd=self._packer.size_sd / self._full_sd,
+            counts=np.array([self.plan.count(t) for t in sizes], dtype=float),
+            units=np.array([self.plan.of_size(t)[0].n_units for t in sizes], dtype=float),
+            n_units=self.plan.n_units,
+            regularization=cfg.regularization,
+        )
+        self._ones = np.ones(self._n)
+        self._surplus = cfg.surplus_weight * cfg.surplus_decay ** np.arange(self._n, dtype=float)
+        self._buckets = _bucket_sizes(self._n)
+        self._bucket_of = [next(b for b in self._buckets if b >= j) for j in range(self._n + 1)]
+        self._models: dict[int, OsqpQp] = {}
+        self._cvx: CvxpyQp | None = None
+        self._last: tuple[TickDemand, _Tick] | None = None
+        self.fallbacks = 0
+        self.last_fallback_reason: str | None = None
+
+    # -- per-tick data --------------------------------------------------------------------------
+    def _tick(self, demand: TickDemand) -> _Tick:
+        if self._last is not None and self._last[0] is demand:
+            return self._last[1]
+        tick = _Tick(self, demand)
+        self._last = (demand, tick)
+        return tick
+
+    def admitted(self, demand: TickDemand) -> NDArray[np.int64]:
+        """Stations whose head frame ``eq_admit`` admits, in deadline order."""
+        return self._tick(demand).order.copy()
+
+    def _qp_data(self, demand: TickDemand) -> tuple[NDArray, NDArray, NDArray, NDArray]:
+        """``q, l, u`` of the full ``n``-station model (``v = [x, t, z]``) and ``active``."""
+        n, k = self._n, self._k
+        a, b, t_max, z_max, active = self._tick(demand).full(n)
+        q = np.concatenate([np.zeros(n * k), -a, -b])
+        u = np.concatenate(
+            [np.zeros(n), np.ones(n), self._shape.counts, [float(self.plan.n_units)],
+             np.repeat(active, k), t_max, z_max]
+        )  # fmt: skip
+        l = np.concatenate([np.full(2 * n + k + 1, -np.inf), np.zeros(n * k + 2 * n)])
+        return q, l, u, active
+
+    def _fall_back(self, reason: str) -> None:
+        """Count a tick whose relaxed solution cannot be used (rounded from zero service)."""
+        self.fallbacks += 1
+        self.last_fallback_reason = reason
+
+    # -- solvers --------------------------------------------------------------------------------
+    def _solve_sized(self, tick: _Tick) -> tuple[NDArray, NDArray, NDArray] | None:
+        """``x, t, z`` of the admitted stations (in ``tick.order``) from the hot path, or
+        ``None`` (counted as a fallback) when OSQP's solution cannot be used."""
+        j = tick.order.size
+        size = self._bucket_of[j]
+        model = self._models.get(size)
+        if model is None:
+            cfg = self.config
+            model = OsqpQp(size, self._shape, eps=cfg.eps, max_iter=cfg.max_iter)
+            self._models[size] = model
+        sol = model.solve(tick.a, tick.b, tick.t_max, tick.z_max)
+        if sol is None:
+            self._fall_back(model.last_status)
+            return None
+        k = self._k
+        return (
+            sol[: size * k].reshape(size, k)[:j],
+            sol[size * k : size * k + j],
+            sol[size * k + size : size * k + size + j],
+        )
+
+    def solve_hot(self, demand: TickDemand) -> NDArray[np.float64]:
+        """Relaxed solution ``v = [x, t, z]`` (full ``n``-station layout) by OSQP directly.
+
+        All zeros (the fallback, counted in :attr:`fallbacks`) when OSQP's solution cannot be
+        used.
+        """
+        tick = self._tick(demand)
+        n, k = self._n, self._k
+        v = np.zeros(n * k + 2 * n)
+        solution = self._solve_sized(tick) if tick.order.size else None
+        if solution is not None:
+            x, t, z = solution
+            v[: n * k].reshape(n, k)[tick.order] = x
+            v[n * k + tick.order] = t
+            v[n * k + n + tick.order] = z
+        return v
+
+    def _cvxpy_model(self) -> CvxpyQp:
+        if self._cvx is None:
+            self._cvx = CvxpyQp(self._n, self._shape)
+        return self._cvx
+
+    @property
+    def problem(self) -> Any:
+        """The cvxpy model of ``eq_qp`` (built on first use)."""
+        return self._cvxpy_model().problem
+
+    def solve_cvxpy(self, demand: TickDemand) -> NDArray[np.float64]:
+        """Relaxed solution ``v = [x, t, z]`` from the cvxpy model (reference path).
+
+        All zeros (the fallback, counted in :attr:`fallbacks`) when the solver's solution
+        cannot be used.
+        """
+        model = self._cvxpy_model()
+        values = self._tick(demand).full(self._n)
+        v = model.solve(values, solver=self.config.cvxpy_solver.upper(), eps=self.config.eps)
+        if v is None:
+            self._fall_back(model.last_status)
+            return np.zeros(self._n * self._k + 2 * self._n)
+        return v
+
+    # -- rounding -------------------------------------------------------------------------------
+    def round(self, v: NDArray[np.float64], demand: TickDemand) -> NDArray[np.int64]:
+        """``eq_round``: a valid layout from the relaxed solution ``v`` (full layout)."""
+        tick = self._tick(demand)
+        n, k = self._n, self._k
+        order = tick.order
+        served = v[n * k + order] + v[n * k + n + order]
+        return self._round(tick, served)
+
+    def _round(self, tick: _Tick, served: NDArray[np.float64]) -> NDArray[np.int64]:
+        """``eq_round`` from the relaxed service ``t + z`` of the admitted (``tick.order``)."""
+        packer = self._packer
+        lay = [-1] * tick.m
+        order = tick.order_list
+        used = 0
+        if order:
+            # 1. must-serve shares, deadline order (the relaxation's bound T, free of solver noise)
+            full, mask, lo = self._full_sd, packer.mask, packer.size_sd_lo_list
+            last = len(lo) - 1
+            for i, share in zip(order, tick.must, strict=True):
+                if share <= 0.0:
+                    continue
+                r = packer.place_at_most(min(bisect.bisect_left(lo, share * full), last), used)
+                if r >= 0:
+                    lay[i] = r
+                    used |= mask[r]
+            # 2. towards the relaxed service t + z
+            target = [0.0] * tick.m
+            for i, x in zip(order, served.tolist(), strict=True):
+                if x > 1e-3:
+                    target[i] = x * full
+            used = packer.fill(lay, used, target, order)
+        # 3. towards the whole backlog: admitted first, then the rejected
+        rest = order + tick.rejected
+        if rest:
+            packer.fill(lay, used, tick.need_sc, rest)
+        return np.asarray(lay, dtype=np.int64)
+
+    def allocate(self, demand: TickDemand) -> NDArray[np.int64]:
+        tick = self._tick(demand)
+        if not self.config.hot_path:
+            return self.round(self.solve_cvxpy(demand), demand)
+        j = len(tick.order_list)
+        if j == 1:
+            # one station in eq_qp: its optimum (without rho) is the backlog, up to the band
+            served = tick.t_max + tick.z_max
+        elif j:
+            solution = self._solve_sized(tick)
+            served = np.zeros(j) if solution is None else solution[1] + solution[2]
+        else:
+            served = np.zeros(0)
+        return self._round(tick, served)
