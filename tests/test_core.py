@@ -1,0 +1,90 @@
+"""The bottom layer: statistics against theory, seed sets, the registry, the process pool."""
+
+from __future__ import annotations
+
+import math
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from codesign_mb.core import registry
+from codesign_mb.core.registry import ComponentSpec, PlantSpec
+from codesign_mb.core.seeds import SEED_SETS, episode_seeds, seed_set
+from codesign_mb.core.stats import bootstrap_interval, wilson_interval
+from codesign_mb.evaluation import pool
+
+
+def test_bootstrap_interval_of_a_mean_matches_the_normal_theory() -> None:
+    rng = np.random.default_rng(7)
+    sample = rng.normal(3.0, 2.0, size=400)
+    low, high = bootstrap_interval(sample, resamples=4000, seed=1)
+    half = 1.96 * sample.std(ddof=1) / math.sqrt(sample.size)
+    assert low < sample.mean() < high
+    assert (high - low) / 2 == pytest.approx(half, rel=0.1)
+    assert bootstrap_interval([0.5, 0.5, 0.5]) == (0.5, 0.5)
+    with pytest.raises(ValueError, match="at least 2"):
+        bootstrap_interval([1.0])
+
+
+def test_wilson_interval_is_exact_at_the_edges() -> None:
+    assert wilson_interval(100, 100)[1] == 1.0 and wilson_interval(0, 100)[0] == 0.0
+    assert wilson_interval(100, 100)[0] == pytest.approx(0.963, abs=5e-4)
+
+
+def test_seed_sets_are_named_and_disjoint_streams() -> None:
+    assert set(SEED_SETS) == {"dev", "test"}
+    dev, test = episode_seeds(seed_set("dev"), 100), episode_seeds(seed_set("test"), 100)
+    assert not set(dev) & set(test)
+    with pytest.raises(ValueError, match="seed set must be one of test, dev"):
+        seed_set("train")
+
+
+def test_one_registry_builds_every_role_by_kind() -> None:
+    assert set(registry.KINDS) == {
+        "controller",
+        "estimator",
+        "qos",
+        "qos_feature",
+        "plant",
+        "allocator",
+    }
+    assert "none" in registry.kinds("estimator") and "plain" not in registry.kinds("estimator")
+    toy = registry.make_plant(PlantSpec("toy", {"belt_speed_mps": 0.3}))
+    assert toy.config.belt_speed_mps == 0.3
+    qos = registry.build("qos", ComponentSpec("static", options={"reliability": 0.4}), toy)
+    assert qos.reliability == 0.4
+    rule = registry.build("qos", ComponentSpec("rule", options={"threshold_m": 0.02}), toy)
+    assert rule.threshold_m == 0.02
+    with pytest.raises(ValueError, match="unknown allocator kind 'edf'"):
+        registry.create("allocator", "edf")
+    with pytest.raises(ValueError, match="role must be one of"):
+        registry.kinds("robot")
+    with pytest.raises(ValueError, match="needs a checkpoint"):
+        registry.factory("controller", ComponentSpec("sac"))
+
+
+def _square(x: int) -> int:
+    return x * x
+
+
+def _dies_once(marker: str, x: int) -> int:
+    # The first call of task 0 kills its worker process (as an OOM kill would).
+    if x == 0 and not Path(marker).exists():
+        Path(marker).touch()
+        os._exit(1)
+    return x + 1
+
+
+def test_pool_runs_every_task_in_process_and_in_workers() -> None:
+    tasks = [(i,) for i in range(6)]
+    assert sorted(pool.imap(_square, tasks, workers=1)) == [(i, i * i) for i in range(6)]
+    assert sorted(pool.imap(_square, tasks, workers=2)) == [(i, i * i) for i in range(6)]
+
+
+def test_pool_reruns_the_tasks_of_a_dead_worker(tmp_path: Path) -> None:
+    marker = str(tmp_path / "died")
+    with pytest.warns(RuntimeWarning, match="worker process died"):
+        results = dict(pool.imap(_dies_once, [(marker, i) for i in range(4)], workers=2))
+    assert results == {i: i + 1 for i in range(4)}
