@@ -85,9 +85,13 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from codesign_mb.control.conic_buffer import ConicBuffer
+
 __all__ = ["MpcConfig", "MpcController", "MpcQp", "Phase"]
 
 _SOLVERS = ("qpoases", "osqp", "daqp")
+_SUCCESS_STATUS = {"qpoases": "Successful return."}
+"""What a solver's ``return_status`` says on success, when it is known without asking."""
 
 OFF = 1e3
 """A constraint whose lower bound is ``-OFF`` metres is inactive."""
@@ -411,6 +415,14 @@ class MpcQp:
             "clearance": slice(10 * n, 11 * n),
         }
         self._ca = ca
+        # Work arrays of the hot path (solve), allocated once.
+        self._k_step = np.arange(n + 1)[:, None] * (acc_bound / (1.0 - a))  # k * step, k = 0..N
+        self._offset = np.empty(self.n_con)
+        self._low = self.con_low.copy()
+        self._high = self.con_high.copy()
+        self._ax = np.empty(self.n_con)
+        self._dx = np.empty(self.n_var)
+        self._da = np.empty(self.n_con)
 
     def _make_solver(self) -> Any:
         with _quiet_stdout():  # qpOASES prints its licence banner on every instance
@@ -442,6 +454,12 @@ class MpcQp:
         self._x0 = np.zeros(self.n_var)
         self._lam_x0 = np.zeros(self.n_var)
         self._lam_a0 = np.zeros(self.n_con)
+        with _quiet_stdout():  # a new solver memory: qpOASES prints its banner again
+            self._conic = ConicBuffer(
+                self._solver, {"h": self._H_dm.nonzeros(), "a": self._A_dm.nonzeros()}
+            )
+        self._conic.inputs["lbx"][:] = self.var_low
+        self._conic.inputs["ubx"][:] = self.var_high
 
     # -- runtime ------------------------------------------------------------------------
     def pack(
@@ -506,14 +524,14 @@ class MpcQp:
         """
         a, bp_v, bp_u = self._model
         step = self._acc_bound / (1.0 - a)
+        if a == 0.0:  # the velocity is the command: closed form
+            v = np.asarray(velocity, dtype=float)
+            speeds = np.maximum(np.abs(v) - self._k_step, 0.0)
+            np.minimum(speeds[1:], self.v_max, out=speeds[1:])
+            vs = np.sign(v) * speeds  # v[0..N]; u[k] = v[k+1]
+            return position + np.cumsum(bp_v * vs[:-1] + bp_u * vs[1:], axis=0)
         p = np.asarray(position, dtype=float).copy()
         v = np.asarray(velocity, dtype=float).copy()
-        if a == 0.0:  # the velocity is the command: closed form
-            k = np.arange(self.n + 1)[:, None]
-            speeds = np.maximum(np.abs(v) - k * step, 0.0)
-            speeds[1:] = np.minimum(speeds[1:], self.v_max)
-            vs = np.sign(v) * speeds  # v[0..N]; u[k] = v[k+1]
-            return p + np.cumsum(bp_v * vs[:-1] + bp_u * vs[1:], axis=0)
         out = np.empty((self.n, 3))
         for k in range(self.n):
             u = np.clip(np.sign(v) * np.maximum(np.abs(v) - step, 0.0), -self.v_max, self.v_max)
@@ -523,53 +541,76 @@ class MpcQp:
         return out
 
     def solve(self, theta: NDArray[np.float64]) -> MpcSolution:
-        """Solve the QP at ``theta`` (warm-started from the previous solve)."""
-        data = self.qp_data(theta)
-        args = {
-            "h": self._H_dm,
-            "g": data["g"],
-            "a": self._A_dm,
-            "lba": data["lba"],
-            "uba": data["uba"],
-            "lbx": data["lbx"],
-            "ubx": data["ubx"],
-        }
+        """Solve the QP at ``theta`` (warm-started from the previous solve).
+
+        The data of :meth:`qp_data` are written into the arrays bound to the solver's buffer
+        (:class:`~codesign_mb.control.conic_buffer.ConicBuffer`), so a step converts nothing.
+        """
+        conic = self._conic
+        inputs = conic.inputs
+        self._fill(np.asarray(theta, dtype=float), inputs["g"], inputs["lba"], inputs["uba"])
         if self._warm_inputs:  # qpOASES hot-starts from its own active set instead
-            args.update(x0=self._x0, lam_x0=self._lam_x0, lam_a0=self._lam_a0)
+            inputs["x0"][:] = self._x0
+            inputs["lam_x0"][:] = self._lam_x0
+            inputs["lam_a0"][:] = self._lam_a0
         with _quiet_stdout():
             start_cpu = time.thread_time()
             start = time.perf_counter()
-            out = self._solver.call(args)
+            flag = conic()
             elapsed = time.perf_counter() - start
             cpu = time.thread_time() - start_cpu
-        stats = self._solver.stats()
-        x = np.fromiter(out["x"].nonzeros(), float, self.n_var)
-        ok = bool(stats.get("success", False)) and self._feasible(x, data)
-        status = str(stats.get("return_status", ""))
+        outputs = conic.outputs
+        x = outputs["x"].copy()
+        # qpOASES: CasADi's unified return status is 0 exactly when it returned successfully.
+        success = bool(conic.stats().get("success", False)) if self._warm_inputs else flag == 0
         n = self.n
-        if not ok:
+        if not (success and self._feasible(x, inputs)):
+            status = str(conic.stats().get("return_status", ""))
             self.reset()  # never hot-start from a failed solve
             return MpcSolution(np.zeros((n, 3)), False, status or "failed", elapsed, 0.0, cpu)
         if self._warm_inputs:  # shifted primal, previous duals
             self._x0 = np.concatenate([x[3 : 3 * n], x[3 * n - 3 : 3 * n], x[3 * n :]])
-            self._lam_x0 = np.fromiter(out["lam_x"].nonzeros(), float, self.n_var)
-            self._lam_a0 = np.fromiter(out["lam_a"].nonzeros(), float, self.n_con)
+            self._lam_x0 = outputs["lam_x"].copy()
+            self._lam_a0 = outputs["lam_a"].copy()
+        status = _SUCCESS_STATUS.get(self.config.solver) or str(conic.stats()["return_status"])
         return MpcSolution(x[: 3 * n].reshape(n, 3), True, status, elapsed, float(x[3 * n]), cpu)
+
+    def _fill(
+        self,
+        theta: NDArray[np.float64],
+        g: NDArray[np.float64],
+        lba: NDArray[np.float64],
+        uba: NDArray[np.float64],
+    ) -> None:
+        """Write :meth:`qp_data`'s ``g``, ``lba``, ``uba`` at ``theta`` into the given arrays."""
+        np.matmul(self.G, theta, out=g)
+        g += self.g0
+        offset = self._offset
+        np.matmul(self.B, theta, out=offset)
+        offset += self.b0
+        low, high = self._low, self._high
+        rows = self.rows["workspace"]
+        stop = self.stopping_path(theta[0:3], theta[3:6]).ravel()
+        np.minimum(self.con_low[rows], stop, out=low[rows])
+        np.maximum(self.con_high[rows], stop, out=high[rows])
+        np.subtract(low, offset, out=lba)
+        np.subtract(high, offset, out=uba)
 
     def _feasible(
         self, x: NDArray[np.float64], data: Mapping[str, NDArray], tol: float = 1e-5
     ) -> bool:
         """Whether ``x`` satisfies the hard bounds (a solver's "success" is not taken on trust)."""
-        if not np.all(np.isfinite(x)):
+        if not np.isfinite(x).all():
             return False
-        ax = self.A @ x
+        ax, dx, da = self._ax, self._dx, self._da
+        np.matmul(self.A, x, out=ax)
         worst = max(
-            float(np.max(data["lbx"] - x)),
-            float(np.max(x - data["ubx"])),
-            float(np.max(data["lba"] - ax)),
-            float(np.max(ax - data["uba"])),
+            np.subtract(data["lbx"], x, out=dx).max(),
+            np.subtract(x, data["ubx"], out=dx).max(),
+            np.subtract(data["lba"], ax, out=da).max(),
+            np.subtract(ax, data["uba"], out=da).max(),
         )
-        return worst <= tol
+        return bool(worst <= tol)
 
     def __getstate__(self) -> dict[str, Any]:
         # The CasADi objects are rebuilt on unpickling (worker processes).
@@ -635,6 +676,7 @@ class MpcController:
         self.max_speed_mps = float(max_speed_mps)
         self.belt_velocity = np.asarray(belt_velocity, dtype=float).reshape(3)
         self.qp = MpcQp(self.config, dt=self.control_period_s, max_speed_mps=self.max_speed_mps)
+        self._prepare()
         self.total_failures = 0
         self.recorder: list[NDArray[np.float64]] | None = None
         """When a list, every QP parameter vector solved is appended (benchmarks replay them)."""
@@ -686,7 +728,10 @@ class MpcController:
         obs = np.asarray(observation, dtype=float)
         grip_pos = obs[self.layout["gripper_pos"]]
         grip_vel = obs[self.layout["gripper_vel"]]
-        width = float(np.mean(obs[self.layout["finger_width"]]))
+        if self._width_index is None:
+            width = float(np.mean(obs[self.layout["finger_width"]]))
+        else:  # one entry: its mean is itself
+            width = float(obs[self._width_index])
         obj = obs[self.layout["object_pos"]]
         if "object_vel" in self.layout:
             obj_vel = obs[self.layout["object_vel"]]
@@ -714,6 +759,26 @@ class MpcController:
         return action
 
     # -- phase logic ----------------------------------------------------------------------
+    def _prepare(self) -> None:
+        """Constants and the parameter vector's views, so a step allocates little."""
+        cfg, n, dt = self.config, self.qp.n, self.control_period_s
+        self._kdt = np.arange(1, n + 1)[:, None] * dt  # k dt, k = 1..N
+        self._offset = np.asarray(cfg.grasp_offset_m)
+        self._hover = np.array([0.0, 0.0, cfg.hover_height_m])
+        self._lift = np.array([0.0, 0.0, cfg.lift_height_m])
+        self._ws_low = np.asarray(cfg.workspace_low)
+        self._ws_high = np.asarray(cfg.workspace_high)
+        self._path = np.empty((n, 3))
+        width = self.layout["finger_width"]
+        indices = range(width.stop)[width] if width.stop is not None else range(0)
+        self._width_index: int | None = indices[0] if len(indices) == 1 else None
+        theta = np.empty(self.qp.n_theta)  # the layout of MpcQp.pack
+        self._theta = theta
+        self._ref = theta[9 : 9 + 3 * n].reshape(n, 3)
+        self._vref = theta[9 + 3 * n : 9 + 6 * n].reshape(n, 3)
+        self._apex = theta[9 + 6 * n : 9 + 9 * n].reshape(n, 3)
+        self._plane = theta[9 + 9 * n : 9 + 10 * n]
+
     def _parameters(
         self,
         p: NDArray[np.float64],
@@ -722,11 +787,12 @@ class MpcController:
         obj: NDArray[np.float64],
         obj_vel: NDArray[np.float64],
     ) -> NDArray[np.float64]:
-        cfg, n, dt = self.config, self.qp.n, self.control_period_s
-        offset = np.asarray(cfg.grasp_offset_m)
-        k = np.arange(1, n + 1)[:, None]
-        grasp_path = obj + offset + k * dt * obj_vel  # (N, 3) grasp point along the belt
-        err = p - (obj + offset)
+        """Advance the phase and return ``theta`` (:meth:`MpcQp.pack`), written in place."""
+        cfg = self.config
+        grasp = obj + self._offset
+        grasp_path = np.multiply(self._kdt, obj_vel, out=self._path)
+        np.add(grasp, grasp_path, out=grasp_path)  # (N, 3) grasp point along the belt
+        err = p - grasp
         lateral = float(np.hypot(err[0], err[1]))
         if self.phase == Phase.APPROACH and lateral <= cfg.align_tolerance_m:
             self.phase = Phase.DESCEND
@@ -748,26 +814,29 @@ class MpcController:
             self.phase = Phase.APPROACH
             self._lift_origin = None
         self._grip = 1.0 if self.phase in (Phase.GRASP, Phase.LIFT) else -1.0
-        apex = grasp_path.copy()
-        apex[:, 2] -= cfg.funnel_apex_depth_m
-        plane = np.full(n, -OFF)
+        theta, ref, vref, apex, plane = self._theta, self._ref, self._vref, self._apex, self._plane
+        apex[:] = grasp_path
         if self.phase == Phase.APPROACH:
-            ref = grasp_path + np.array([0.0, 0.0, cfg.hover_height_m])
-            vref = np.tile(obj_vel, (n, 1))
-            plane = grasp_path[:, 2] + cfg.clearance_m  # stay above until aligned
+            np.add(grasp_path, self._hover, out=ref)
+            vref[:] = obj_vel
+            np.add(grasp_path[:, 2], cfg.clearance_m, out=plane)  # stay above until aligned
             apex[:, 2] = -OFF
         elif self.phase in (Phase.DESCEND, Phase.GRASP):
-            ref = grasp_path
-            vref = np.tile(obj_vel, (n, 1))
+            ref[:] = grasp_path
+            vref[:] = obj_vel
+            apex[:, 2] -= cfg.funnel_apex_depth_m
+            plane[:] = -OFF
         else:
             origin = self._lift_origin if self._lift_origin is not None else p
-            ref = np.tile(origin + np.array([0.0, 0.0, cfg.lift_height_m]), (n, 1))
-            vref = np.zeros((n, 3))
+            ref[:] = origin + self._lift
+            vref[:] = 0.0
             apex[:, 2] = -OFF
-        lo = np.asarray(cfg.workspace_low)
-        hi = np.asarray(cfg.workspace_high)
-        ref = np.clip(ref, lo, hi)
-        return self.qp.pack(p, v, self._u_prev, ref, vref, apex, plane)
+            plane[:] = -OFF
+        np.clip(ref, self._ws_low, self._ws_high, out=ref)
+        theta[0:3] = p
+        theta[3:6] = v
+        theta[6:9] = self._u_prev
+        return theta
 
     def _safe_command(self, p: NDArray[np.float64]) -> NDArray[np.float64]:
         lo = np.asarray(self.config.workspace_low)
