@@ -86,6 +86,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from codesign_mb.control.conic_buffer import ConicBuffer
+from codesign_mb.control.mpc_kernels import fill_parameters, stopping_bounds, worst_violation
 
 __all__ = ["MpcConfig", "MpcController", "MpcQp", "Phase"]
 
@@ -421,8 +422,6 @@ class MpcQp:
         self._low = self.con_low.copy()
         self._high = self.con_high.copy()
         self._ax = np.empty(self.n_con)
-        self._dx = np.empty(self.n_var)
-        self._da = np.empty(self.n_con)
 
     def _make_solver(self) -> Any:
         with _quiet_stdout():  # qpOASES prints its licence banner on every instance
@@ -588,6 +587,14 @@ class MpcQp:
         offset = self._offset
         np.matmul(self.B, theta, out=offset)
         offset += self.b0
+        a, bp_v, bp_u = self._model
+        if a == 0.0:  # compiled closed form, the same arithmetic as below
+            row0 = self.rows["workspace"].start
+            stopping_bounds(
+                theta[0:3], theta[3:6], self._k_step, self.v_max, bp_v, bp_u,
+                self.con_low, self.con_high, row0, offset, lba, uba,
+            )  # fmt: skip
+            return
         low, high = self._low, self._high
         rows = self.rows["workspace"]
         stop = self.stopping_path(theta[0:3], theta[3:6]).ravel()
@@ -600,16 +607,8 @@ class MpcQp:
         self, x: NDArray[np.float64], data: Mapping[str, NDArray], tol: float = 1e-5
     ) -> bool:
         """Whether ``x`` satisfies the hard bounds (a solver's "success" is not taken on trust)."""
-        if not np.isfinite(x).all():
-            return False
-        ax, dx, da = self._ax, self._dx, self._da
-        np.matmul(self.A, x, out=ax)
-        worst = max(
-            np.subtract(data["lbx"], x, out=dx).max(),
-            np.subtract(x, data["ubx"], out=dx).max(),
-            np.subtract(data["lba"], ax, out=da).max(),
-            np.subtract(ax, data["uba"], out=da).max(),
-        )
+        ax = np.matmul(self.A, x, out=self._ax)
+        worst = worst_violation(x, ax, data["lbx"], data["ubx"], data["lba"], data["uba"])
         return bool(worst <= tol)
 
     def __getstate__(self) -> dict[str, Any]:
@@ -768,16 +767,10 @@ class MpcController:
         self._lift = np.array([0.0, 0.0, cfg.lift_height_m])
         self._ws_low = np.asarray(cfg.workspace_low)
         self._ws_high = np.asarray(cfg.workspace_high)
-        self._path = np.empty((n, 3))
         width = self.layout["finger_width"]
         indices = range(width.stop)[width] if width.stop is not None else range(0)
         self._width_index: int | None = indices[0] if len(indices) == 1 else None
-        theta = np.empty(self.qp.n_theta)  # the layout of MpcQp.pack
-        self._theta = theta
-        self._ref = theta[9 : 9 + 3 * n].reshape(n, 3)
-        self._vref = theta[9 + 3 * n : 9 + 6 * n].reshape(n, 3)
-        self._apex = theta[9 + 6 * n : 9 + 9 * n].reshape(n, 3)
-        self._plane = theta[9 + 9 * n : 9 + 10 * n]
+        self._theta = np.empty(self.qp.n_theta)  # the layout of MpcQp.pack
 
     def _parameters(
         self,
@@ -789,17 +782,17 @@ class MpcController:
     ) -> NDArray[np.float64]:
         """Advance the phase and return ``theta`` (:meth:`MpcQp.pack`), written in place."""
         cfg = self.config
-        grasp = obj + self._offset
-        grasp_path = np.multiply(self._kdt, obj_vel, out=self._path)
-        np.add(grasp, grasp_path, out=grasp_path)  # (N, 3) grasp point along the belt
-        err = p - grasp
-        lateral = float(np.hypot(err[0], err[1]))
+        p0, p1, p2 = p.tolist()
+        o0, o1, o2 = obj.tolist()
+        g0, g1, g2 = self._offset.tolist()
+        e0, e1, e2 = p0 - (o0 + g0), p1 - (o1 + g1), p2 - (o2 + g2)  # p - (obj + offset)
+        lateral = float(np.hypot(e0, e1))
         if self.phase == Phase.APPROACH and lateral <= cfg.align_tolerance_m:
             self.phase = Phase.DESCEND
         elif self.phase == Phase.DESCEND:
             if lateral > cfg.abort_tolerance_m:
                 self.phase = Phase.APPROACH
-            elif lateral <= cfg.grasp_tolerance_m and abs(err[2]) <= cfg.grasp_height_tolerance_m:
+            elif lateral <= cfg.grasp_tolerance_m and abs(e2) <= cfg.grasp_height_tolerance_m:
                 self.phase = Phase.GRASP
                 self._closing = 0
         elif self.phase == Phase.GRASP:
@@ -814,29 +807,13 @@ class MpcController:
             self.phase = Phase.APPROACH
             self._lift_origin = None
         self._grip = 1.0 if self.phase in (Phase.GRASP, Phase.LIFT) else -1.0
-        theta, ref, vref, apex, plane = self._theta, self._ref, self._vref, self._apex, self._plane
-        apex[:] = grasp_path
-        if self.phase == Phase.APPROACH:
-            np.add(grasp_path, self._hover, out=ref)
-            vref[:] = obj_vel
-            np.add(grasp_path[:, 2], cfg.clearance_m, out=plane)  # stay above until aligned
-            apex[:, 2] = -OFF
-        elif self.phase in (Phase.DESCEND, Phase.GRASP):
-            ref[:] = grasp_path
-            vref[:] = obj_vel
-            apex[:, 2] -= cfg.funnel_apex_depth_m
-            plane[:] = -OFF
-        else:
-            origin = self._lift_origin if self._lift_origin is not None else p
-            ref[:] = origin + self._lift
-            vref[:] = 0.0
-            apex[:, 2] = -OFF
-            plane[:] = -OFF
-        np.clip(ref, self._ws_low, self._ws_high, out=ref)
-        theta[0:3] = p
-        theta[3:6] = v
-        theta[6:9] = self._u_prev
-        return theta
+        origin = self._lift_origin if self._lift_origin is not None else p
+        fill_parameters(
+            self._theta, p, v, self._u_prev, obj, self._offset, obj_vel, self._kdt,
+            int(self.phase), self._hover, cfg.clearance_m, cfg.funnel_apex_depth_m, self._lift,
+            origin, self._ws_low, self._ws_high, OFF,
+        )  # fmt: skip
+        return self._theta
 
     def _safe_command(self, p: NDArray[np.float64]) -> NDArray[np.float64]:
         lo = np.asarray(self.config.workspace_low)
