@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import numpy as np
@@ -44,30 +45,69 @@ def rollout(
     controller.reset(seed=seed)
     estimate = estimator.reset(obs)
     remote = env.remote_slice
-    rows: list[dict[str, Any]] = []
+    record = _Record()
     t = 0
     while max_steps is None or t < max_steps:
         action = np.asarray(controller.act(estimate))
-        row: dict[str, Any] = {"t": t}
-        row.update({k: info[k] for k in _RECORDED})
-        row["estimation_error"] = float(
-            np.linalg.norm(np.asarray(estimate)[remote] - info["remote_true"])
-        )
+        error = np.asarray(estimate)[remote] - info["remote_true"]
+        head = [info[k] for k in _RECORDED]
+        head.append(math.sqrt(error.dot(error)))  # the norm of the estimation error
         obs, reward, terminated, truncated, info = env.step(action)
-        row["reward"] = float(reward)
-        row.update(
-            {
-                k: v
-                for k, v in info.items()
-                if k not in row
-                and k not in _RECORDED
-                and np.ndim(v) == 0
-                and not isinstance(v, str)
-            }
-        )
-        rows.append(row)
+        record.append(t, head, float(reward), info)
         t += 1
         if terminated or truncated:
             break
         estimate = estimator.estimate(obs, action)
-    return pd.DataFrame(rows)
+    return record.frame()
+
+
+_HEAD = ("t", *_RECORDED, "estimation_error", "reward")
+_SCALARS = (bool, int, float, np.bool_, np.float64, np.int64)
+"""Types whose values are recorded without asking ``np.ndim`` (0-d by construction)."""
+
+
+class _Record:
+    """The per-step rows of :func:`rollout`, kept as columns (one DataFrame at the end).
+
+    A row is ``t``, the QoS columns, ``estimation_error``, ``reward`` and every scalar,
+    non-string ``info`` entry not among them. While every step has the same ``info`` columns
+    the values go straight into lists; otherwise the rows fall back to dicts, which pandas
+    aligns (a missing entry is NaN) as before.
+    """
+
+    def __init__(self) -> None:
+        self.keys: tuple[str, ...] | None = None
+        self.columns: list[list[Any]] = []
+        self.rows: list[dict[str, Any]] | None = None
+
+    def append(self, t: int, head: list[Any], reward: float, info: dict[str, Any]) -> None:
+        keys = []
+        values: list[Any] = [t, *head, reward]
+        for k, v in info.items():
+            if k in _HEAD:
+                continue
+            if type(v) in _SCALARS or (np.ndim(v) == 0 and not isinstance(v, str)):
+                keys.append(k)
+                values.append(v)
+        if self.keys is None and self.rows is None:
+            self.keys = tuple(keys)
+            self.columns = [[] for _ in range(len(values))]
+        if self.rows is None and tuple(keys) != self.keys:
+            self.rows = self._as_rows()
+        if self.rows is not None:
+            self.rows.append(dict(zip((*_HEAD, *keys), values, strict=True)))
+            return
+        for column, value in zip(self.columns, values, strict=True):
+            column.append(value)
+
+    def _as_rows(self) -> list[dict[str, Any]]:
+        names = (*_HEAD, *(self.keys or ()))
+        return [dict(zip(names, row, strict=True)) for row in zip(*self.columns, strict=True)]
+
+    def frame(self) -> pd.DataFrame:
+        if self.rows is not None:
+            return pd.DataFrame(self.rows)
+        if self.keys is None:
+            return pd.DataFrame([])
+        names = (*_HEAD, *self.keys)
+        return pd.DataFrame(dict(zip(names, self.columns, strict=True)))
