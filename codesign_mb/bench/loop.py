@@ -66,9 +66,9 @@ def _recording(plant: Any, controls: list[np.ndarray], actions: list[np.ndarray]
 
 
 def _timed(calls: dict[str, list[float]], name: str, fn: Callable[..., Any]) -> Callable[..., Any]:
-    """``fn`` wrapped to append its wall time to ``calls[name]``."""
+    """``fn`` wrapped to append its thread CPU time to ``calls[name]``."""
     times = calls.setdefault(name, [])
-    clock = time.perf_counter
+    clock = time.thread_time
 
     def wrapper(*args: Any, **kwargs: Any) -> Any:
         t0 = clock()
@@ -82,7 +82,10 @@ def _timed(calls: dict[str, list[float]], name: str, fn: Callable[..., Any]) -> 
 def _breakdown(
     plant: Any, env: Any, estimator: Any, controller: Any, seeds: list[int]
 ) -> dict[str, float]:
-    """Mean microseconds per control step of each part of the loop (an untimed pass).
+    """Mean microseconds of thread CPU time per control step of each part of the loop.
+
+    A separate pass (CPU time: preemption by other processes on a shared machine is not
+    counted).
 
     The env, wrapper, controller and estimator methods are timed by instance-level wrappers;
     ``wrapper_link`` is ``env.step`` through the wrapper minus the plant's ``step``, and
@@ -103,9 +106,9 @@ def _breakdown(
     steps = 0
     try:
         for s in seeds:
-            t0 = time.perf_counter()
+            t0 = time.thread_time()
             steps += len(rollout(env, estimator, controller, seed=s))
-            total += time.perf_counter() - t0
+            total += time.thread_time() - t0
     finally:
         for obj, method, _ in patched:
             delattr(obj, method)
@@ -137,9 +140,12 @@ def bench_loop(
     their commands are replayed with bare ``mj_step``. Returns a JSON-ready dict:
     ``steps_per_s`` (median over repeats), ``physics_only_steps_per_s`` (median of the
     replays), ``loop_physics_ratio`` (median over repeats of loop rate / replay rate, the
-    headline), the per-repeat figures, ``breakdown_us_per_step`` (mean microseconds per step
-    of ``env_step``, ``controller_act``, ``estimator_estimate``, ``wrapper_link``, ``record``,
-    from a separate untimed pass) and the load average.
+    headline), ``loop_physics_cpu_ratio`` (the same with the thread's CPU time, less
+    sensitive to other processes), ``env_only_steps_per_s`` and ``env_physics_ratio`` (the
+    recorded actions replayed through the bare env: the ceiling), the per-repeat figures,
+    ``breakdown_us_per_step`` (mean CPU microseconds per step of ``env_step``,
+    ``controller_act``, ``estimator_estimate``, ``wrapper_link``, ``record``, from a
+    separate pass over the last repeat's episodes) and the load average.
     """
     import mujoco
 
@@ -163,16 +169,17 @@ def bench_loop(
             step(a)
         return time.perf_counter() - t0
 
-    def replay(episode_seed: int, controls: np.ndarray) -> float:
+    def replay(episode_seed: int, controls: np.ndarray) -> tuple[float, float]:
         plant.reset(seed=episode_seed)
         ctrl = d.ctrl
-        t0 = time.perf_counter()
+        c0, t0 = time.thread_time(), time.perf_counter()
         for u in controls:
             ctrl[:] = u
             mujoco.mj_step(m, d)
-        return time.perf_counter() - t0
+        return time.perf_counter() - t0, time.thread_time() - c0
 
     rates: list[float] = []
+    cpu_ratios: list[float] = []
     physics_rates: list[float] = []
     env_rates: list[float] = []
     steps_total = 0
@@ -186,23 +193,26 @@ def bench_loop(
                 rollout(env, estimator, controller, seed=s)
             recorded.append(np.array(controls))
             actions.append(episode_actions)
-        elapsed, steps = 0.0, 0
+        elapsed, cpu, steps = 0.0, 0.0, 0
         for s in seeds:
-            t0 = time.perf_counter()
+            c0, t0 = time.thread_time(), time.perf_counter()
             steps += len(rollout(env, estimator, controller, seed=s))
             elapsed += time.perf_counter() - t0
-        p_wall = sum(replay(s, c) for s, c in zip(seeds, recorded, strict=True))
+            cpu += time.thread_time() - c0
+        replays = [replay(s, c) for s, c in zip(seeds, recorded, strict=True)]
+        p_wall, p_cpu = sum(w for w, _ in replays), sum(c for _, c in replays)
         e_wall = sum(replay_env(s, a) for s, a in zip(seeds, actions, strict=True))
         n_replayed = sum(len(c) for c in recorded) / n_substeps
         if n_replayed != steps:
             raise RuntimeError(f"recorded {n_replayed} steps but timed {steps}: not deterministic")
         rates.append(steps / elapsed)
+        cpu_ratios.append(p_cpu / cpu)
         physics_rates.append(n_replayed / p_wall)
         env_rates.append(n_replayed / e_wall)
         steps_total += steps
     ratios = [e / p for e, p in zip(rates, physics_rates, strict=True)]
     env_ratios = [e / p for e, p in zip(env_rates, physics_rates, strict=True)]
-    breakdown = _breakdown(plant, env, estimator, controller, [seed])
+    breakdown = _breakdown(plant, env, estimator, controller, seeds)
     env.close()
     return {
         "name": "loop",
@@ -212,6 +222,8 @@ def bench_loop(
         "physics_only_steps_per_s_repeats": [round(float(x), 1) for x in physics_rates],
         "loop_physics_ratio": float(np.median(ratios)),
         "loop_physics_ratio_repeats": [round(float(x), 3) for x in ratios],
+        "loop_physics_cpu_ratio": float(np.median(cpu_ratios)),
+        "loop_physics_cpu_ratio_repeats": [round(float(x), 3) for x in cpu_ratios],
         "env_only_steps_per_s": float(np.median(env_rates)),
         "env_physics_ratio": float(np.median(env_ratios)),
         "env_physics_ratio_repeats": [round(float(x), 3) for x in env_ratios],
