@@ -171,9 +171,13 @@ class DelayCompensatingPredictor:
         from codesign_mb.estimation.kalman import IntermittentKalmanFilter
 
         plant_obs, age = split_networked_observation(observation)
-        self._kf = IntermittentKalmanFilter(
-            self.A, self.C, self.Q, self.R, max_delay_steps=self.max_delay_steps
-        )
+        model = (self.A, self.C, self.Q, self.R, self.max_delay_steps)
+        if self._kf is None or any(a is not b for a, b in zip(model, self._kf_model, strict=True)):
+            # One filter, reset per episode: its covariance memo persists across episodes.
+            self._kf = IntermittentKalmanFilter(
+                self.A, self.C, self.Q, self.R, max_delay_steps=self.max_delay_steps
+            )
+            self._kf_model = model
         x0 = np.concatenate([plant_obs[self._pos], self.prior_velocity])
         self._kf.reset(x0, self.prior_covariance)
         self._t = 0
