@@ -301,8 +301,11 @@ class MpcQp:
     clearance plane's height. The QP data
     are affine in ``theta``: ``g = G theta + g0``, bounds ``= const - (B theta + b0)``; the
     Hessian ``H`` and the constraint matrix ``A`` are constant. :meth:`solve` evaluates these
-    maps with numpy and calls the ``casadi.conic`` solver made once; warm start comes from
-    qpOASES' hot start (or the shifted previous solution for OSQP/DAQP).
+    maps (numpy products, the rest compiled in :mod:`~codesign_mb.control.mpc_kernels`)
+    straight into the arrays bound to the ``casadi.conic`` solver's buffer
+    (:class:`~codesign_mb.control.conic_buffer.ConicBuffer`; ``H`` and ``A`` set once per
+    instance); :meth:`qp_data` is the same data as a dict. Warm start comes from qpOASES'
+    hot start (or the shifted previous solution for OSQP/DAQP).
 
     Parameters
     ----------
