@@ -125,6 +125,56 @@ def _breakdown(
     return {k: round(v, 1) for k, v in out.items()}
 
 
+def _repeat(
+    plant: Any, env: Any, estimator: Any, controller: Any, seeds: list[int]
+) -> tuple[int, float, float, float, float, float]:
+    """One repeat: record, time the loop, replay the physics and the env of ``seeds``.
+
+    Returns the steps, the loop's wall and CPU time, the bare physics' wall and CPU time
+    and the bare env's wall time.
+    """
+    import mujoco
+
+    from codesign_mb.evaluation.rollout import rollout
+
+    m, d = plant.sim.model, plant.sim.data
+    recorded, actions = [], []
+    for s in seeds:
+        controls: list[np.ndarray] = []
+        episode_actions: list[np.ndarray] = []
+        with _recording(plant, controls, episode_actions):
+            rollout(env, estimator, controller, seed=s)
+        recorded.append(np.array(controls))
+        actions.append(episode_actions)
+    wall, cpu, steps = 0.0, 0.0, 0
+    for s in seeds:
+        c0, t0 = time.thread_time(), time.perf_counter()
+        steps += len(rollout(env, estimator, controller, seed=s))
+        wall += time.perf_counter() - t0
+        cpu += time.thread_time() - c0
+    p_wall = p_cpu = e_wall = 0.0
+    for s, controls_s in zip(seeds, recorded, strict=True):
+        plant.reset(seed=s)
+        ctrl = d.ctrl
+        c0, t0 = time.thread_time(), time.perf_counter()
+        for u in controls_s:
+            ctrl[:] = u
+            mujoco.mj_step(m, d)
+        p_wall += time.perf_counter() - t0
+        p_cpu += time.thread_time() - c0
+    for s, episode_actions in zip(seeds, actions, strict=True):
+        plant.reset(seed=s)
+        step = plant.step
+        t0 = time.perf_counter()
+        for a in episode_actions:
+            step(a)
+        e_wall += time.perf_counter() - t0
+    n_replayed = sum(len(c) for c in recorded) / plant.config.n_substeps
+    if n_replayed != steps:
+        raise RuntimeError(f"recorded {n_replayed} steps but timed {steps}: not deterministic")
+    return steps, wall, cpu, p_wall, p_cpu, e_wall
+
+
 def bench_loop(
     *,
     repeats: int = 5,
@@ -156,28 +206,7 @@ def bench_loop(
     if int(episodes) < 1:
         raise ValueError(f"episodes must be >= 1, got {episodes}")
     plant, env, estimator, controller = _build(reliability, latency_steps)
-    sim = plant.sim
-    m, d = sim.model, sim.data
-    n_substeps = plant.config.n_substeps
     rollout(env, estimator, controller, seed=seed, max_steps=2)  # compile (numba), warm up
-
-    def replay_env(episode_seed: int, actions: list[np.ndarray]) -> float:
-        plant.reset(seed=episode_seed)
-        step = plant.step
-        t0 = time.perf_counter()
-        for a in actions:
-            step(a)
-        return time.perf_counter() - t0
-
-    def replay(episode_seed: int, controls: np.ndarray) -> tuple[float, float]:
-        plant.reset(seed=episode_seed)
-        ctrl = d.ctrl
-        c0, t0 = time.thread_time(), time.perf_counter()
-        for u in controls:
-            ctrl[:] = u
-            mujoco.mj_step(m, d)
-        return time.perf_counter() - t0, time.thread_time() - c0
-
     rates: list[float] = []
     cpu_ratios: list[float] = []
     physics_rates: list[float] = []
@@ -185,30 +214,11 @@ def bench_loop(
     steps_total = 0
     for r in range(int(repeats)):
         seeds = [seed + r * int(episodes) + e for e in range(int(episodes))]
-        recorded, actions = [], []
-        for s in seeds:
-            controls: list[np.ndarray] = []
-            episode_actions: list[np.ndarray] = []
-            with _recording(plant, controls, episode_actions):
-                rollout(env, estimator, controller, seed=s)
-            recorded.append(np.array(controls))
-            actions.append(episode_actions)
-        elapsed, cpu, steps = 0.0, 0.0, 0
-        for s in seeds:
-            c0, t0 = time.thread_time(), time.perf_counter()
-            steps += len(rollout(env, estimator, controller, seed=s))
-            elapsed += time.perf_counter() - t0
-            cpu += time.thread_time() - c0
-        replays = [replay(s, c) for s, c in zip(seeds, recorded, strict=True)]
-        p_wall, p_cpu = sum(w for w, _ in replays), sum(c for _, c in replays)
-        e_wall = sum(replay_env(s, a) for s, a in zip(seeds, actions, strict=True))
-        n_replayed = sum(len(c) for c in recorded) / n_substeps
-        if n_replayed != steps:
-            raise RuntimeError(f"recorded {n_replayed} steps but timed {steps}: not deterministic")
-        rates.append(steps / elapsed)
+        steps, wall, cpu, p_wall, p_cpu, e_wall = _repeat(plant, env, estimator, controller, seeds)
+        rates.append(steps / wall)
         cpu_ratios.append(p_cpu / cpu)
-        physics_rates.append(n_replayed / p_wall)
-        env_rates.append(n_replayed / e_wall)
+        physics_rates.append(steps / p_wall)
+        env_rates.append(steps / e_wall)
         steps_total += steps
     ratios = [e / p for e, p in zip(rates, physics_rates, strict=True)]
     env_ratios = [e / p for e, p in zip(env_rates, physics_rates, strict=True)]
