@@ -1,6 +1,7 @@
 """Per-tick allocation time (median, p99) of the RU allocators at 6, 12, 24, 48 stations, as JSON.
 
-Thin script over :func:`codesign_mb.bench.allocators.bench_allocators` (= ``codesign bench allocators``).
+Thin script over :func:`codesign_mb.bench.allocators.bench_allocators`
+(= ``codesign bench allocators``).
 """
 
 from __future__ import annotations

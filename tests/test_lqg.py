@@ -21,7 +21,6 @@ from typer.testing import CliRunner
 
 from codesign_mb.adaptation.base import StaticQos
 from codesign_mb.cli.demo import register
-from codesign_mb.studies.demo import LqgDemoConfig, run_lqg_demo
 from codesign_mb.control.lqr import LqrController
 from codesign_mb.estimation.kalman import intermittent_riccati, steady_state_covariance
 from codesign_mb.network import BernoulliLink, LinkObservationWrapper
@@ -33,6 +32,7 @@ from codesign_mb.plants.linear import (
 )
 from codesign_mb.rollout import rollout
 from codesign_mb.rollout.compose import lqg, lqg_average_cost
+from codesign_mb.studies.demo import LqgDemoConfig, run_lqg_demo
 
 Z99 = 2.5758293035489004  # two-sided 99 % normal quantile
 

@@ -23,33 +23,24 @@ from codesign_mb.core.registry import (
     PlantSpec,
     build,
     make_plant,
-    resolve_checkpoint,
 )
 from codesign_mb.estimation.base import PassThroughEstimator
 from codesign_mb.estimation.learned import MlpEstimator, load_estimator
 from codesign_mb.network.qos import QosRequest
 from codesign_mb.plants.toy import ToyConveyor
-from codesign_mb.stages.stage_a import StageAConfig, train_stage_a
-from codesign_mb.stages.stage_b import (
+from codesign_mb.stages.dual_ascent import DualAscent, DualAscentCallback, feasible_score
+from codesign_mb.stages.episodes import (
     DelayDistribution,
-    EstimatorTraining,
     RandomQos,
-    StageBConfig,
     collect_episodes,
     estimator_mse,
-    fit_estimator,
-    new_estimator,
-    train_stage_b,
 )
-from codesign_mb.stages.stage_c import (
-    DualAscent,
-    DualAscentCallback,
-    QosAdaptationEnv,
-    QosEnvConfig,
-    StageCConfig,
-    feasible_score,
-    train_stage_c,
-)
+from codesign_mb.stages.fitting import EstimatorTraining, fit_estimator, new_estimator
+from codesign_mb.stages.paths import recorded_components, resolve_recorded
+from codesign_mb.stages.qos_env import QosAdaptationEnv, QosEnvConfig
+from codesign_mb.stages.stage_a import StageAConfig, train_stage_a
+from codesign_mb.stages.stage_b import StageBConfig, train_stage_b
+from codesign_mb.stages.stage_c import StageCConfig, train_stage_c
 from codesign_mb.stages.stage_d import StageDConfig, train_stage_d
 from codesign_mb.stages.training import SacSpec, make_sac
 
@@ -180,26 +171,6 @@ def test_stage_a_resume_continues_the_step_count(pipeline: dict[str, Path], tmp_
     assert result["env_steps"] == 300
     state = json.loads((work / "state.json").read_text())
     assert [p["steps"] for p in state["curve"]] == [0, 100, 200, 300]
-
-
-def test_sac_controller_save_load_identical_actions(tmp_path) -> None:
-    env = make_plant(TOY)
-    model = make_sac(env, TINY_SAC, seed=3)
-    model.learn(80)
-    model.save(tmp_path / "m.zip")
-    live, loaded = SacController(model), SacController.load(tmp_path / "m.zip")
-    obs, _ = env.reset(seed=5)
-    for _ in range(5):
-        a, b = live.act(obs), loaded.act(obs)
-        np.testing.assert_array_equal(a, b)
-        obs, *_ = env.step(a)
-
-
-def test_sac_controller_missing_checkpoint_is_a_clear_error(tmp_path) -> None:
-    with pytest.raises(ValueError, match="train one with `codesign train a`"):
-        SacController.load(tmp_path / "nope.zip")
-    with pytest.raises(ValueError, match="not found"):
-        resolve_checkpoint("checkpoints/does_not_exist.zip")
 
 
 def test_stage_b_estimators_and_comparison(pipeline: dict[str, Path]) -> None:
@@ -424,7 +395,9 @@ def test_stage_d_continues_estimator_and_qos(pipeline: dict[str, Path]) -> None:
     assert {"before", "after"} <= set(meta["estimator"]["held_out_mse_under_learned_qos"])
     assert load_estimator(pipeline["out_d"] / "mlp.pt").kind == "mlp"
     qos_meta = json.loads((pipeline["out_d"] / "qos" / "training.json").read_text())
-    assert qos_meta["warm_start"] == str(pipeline["out_c"])
+    assert not Path(qos_meta["warm_start"]).is_absolute()
+    warm_start = resolve_recorded(qos_meta["warm_start"], pipeline["out_d"] / "qos")
+    assert warm_start == pipeline["out_c"].resolve()
     # the multiplier continues from stage C's (which dual ascent moved every episode); stage
     # D's 100 steps finish no 20-episode window, so it ends there too
     meta_c = json.loads((pipeline["out_c"] / "training.json").read_text())
@@ -433,6 +406,58 @@ def test_stage_d_continues_estimator_and_qos(pipeline: dict[str, Path]) -> None:
     assert lam_c != StageCConfig().env.lam
     assert qos_meta["lambda"] == pytest.approx(lam_c)
     LearnedQosPolicy.load(pipeline["out_d"] / "qos")
+
+
+def test_checkpoints_record_relative_paths_and_load_after_a_move(
+    pipeline: dict[str, Path], tmp_path: Path
+) -> None:
+    """Moved together, the checkpoint folders still find one another (no absolute paths)."""
+    import shutil
+
+    root = pipeline["out_a"].parent
+    for name in ("out_a", "out_b", "out_c", "out_d"):
+        for path in pipeline[name].rglob("*.json"):
+            assert str(root) not in path.read_text(), path
+        shutil.copytree(pipeline[name], tmp_path / "first" / name)
+    shutil.move(tmp_path / "first", tmp_path / "then" / "elsewhere")
+    moved = (tmp_path / "then" / "elsewhere").resolve()
+    qos_dir = moved / "out_d" / "qos"
+    components = recorded_components(qos_dir)
+    assert Path(components["estimator"].checkpoint) == moved / "out_d" / "mlp.pt"
+    assert Path(components["controller"].checkpoint) == moved / "out_a" / "model.zip"
+    env = make_plant(TOY)
+    assert isinstance(build("controller", components["controller"], env), SacController)
+    assert load_estimator(components["estimator"].checkpoint).kind == "mlp"
+    LearnedQosPolicy.from_env(env, qos_dir)
+    meta = json.loads((qos_dir / "training.json").read_text())
+    assert resolve_recorded(meta["warm_start"], qos_dir) == moved / "out_c"
+    with pytest.raises(ValueError, match="not found"):
+        resolve_recorded("../nope.pt", qos_dir)
+
+
+def test_shipped_checkpoints_record_portable_paths() -> None:
+    """Every checkpoint path in the shipped JSON is relative and resolves where it should."""
+    from codesign_mb.core.registry import models_dir
+    from codesign_mb.stages.paths import PATH_KEYS
+
+    def paths(node):
+        if isinstance(node, dict):
+            for key, value in node.items():
+                if key in PATH_KEYS and isinstance(value, str):
+                    yield value
+                else:
+                    yield from paths(value)
+        elif isinstance(node, list):
+            for value in node:
+                yield from paths(value)
+
+    for path in (models_dir() / "checkpoints").rglob("*.json"):
+        for recorded in paths(json.loads(path.read_text())):
+            assert not Path(recorded).is_absolute(), (path, recorded)
+            assert resolve_recorded(recorded, path.parent).exists()
+    stage_d = models_dir() / "checkpoints" / "stage_d"
+    estimator = recorded_components(stage_d / "qos")["estimator"]
+    assert Path(estimator.checkpoint) == (stage_d / "mlp.pt").resolve()
 
 
 # -- toy plant and configuration ------------------------------------------------------------------

@@ -1,4 +1,4 @@
-"""``codesign train`` and ``codesign table`` on the toy plant: files, resume, errors."""
+"""``codesign train`` and ``codesign table`` on the toy plant: files, defaults, resume, errors."""
 
 from __future__ import annotations
 
@@ -83,6 +83,26 @@ def test_train_a_writes_checkpoint_then_resumes(runner: CliRunner, tmp_path: Pat
     assert json.loads(result.stdout)["env_steps"] == 300
     curve = json.loads((out / "curve.json").read_text())
     assert [p["steps"] for p in curve] == [0, 100, 200, 300]
+
+
+def test_train_writes_under_runs_by_default(
+    runner: CliRunner, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Without --out, the checkpoint goes to the working directory's runs/, not to models/."""
+    from codesign_mb.core.registry import models_dir
+
+    config = tmp_path / "toy.toml"
+    config.write_text(TOY_A.replace("total_steps = 200", "total_steps = 100"))
+    monkeypatch.chdir(tmp_path)
+    shipped = models_dir() / "checkpoints" / "stage_a" / "training.json"
+    before = shipped.read_bytes()
+    result = runner.invoke(app, ["train", "a", "-c", str(config), "--json"])
+    assert result.exit_code == 0, result.output
+    assert json.loads(result.stdout)["env_steps"] == 100
+    out = tmp_path / "runs" / "checkpoints" / "stage_a"
+    assert (out / "model.zip").is_file() and (out / "training.json").is_file()
+    assert (tmp_path / "runs" / "train" / "stage_a" / "state.json").is_file()
+    assert shipped.read_bytes() == before
 
 
 def test_train_rejects_bad_input(runner: CliRunner, tmp_path: Path) -> None:

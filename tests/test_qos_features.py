@@ -18,7 +18,8 @@ from codesign_mb.core.registry import ComponentSpec, PlantSpec, make_plant
 from codesign_mb.network import BernoulliLink
 from codesign_mb.network.qos import QosRequest
 from codesign_mb.rollout.compose import covariance_rule_on, predictor_replica_on
-from codesign_mb.stages.stage_c import DualAscent, StageCConfig, make_qos_env, train_stage_c
+from codesign_mb.stages.dual_ascent import DualAscent
+from codesign_mb.stages.stage_c import StageCConfig, make_qos_env, train_stage_c
 from codesign_mb.stages.training import SacSpec
 
 LAYOUT = {"object_pos": slice(0, 3), "object_vel": slice(3, 6)}

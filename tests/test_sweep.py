@@ -213,7 +213,7 @@ def test_local_and_ray_backends_identical(tmp_path: Path, ray_local: None) -> No
 def test_tune_hyperparameters(tmp_path: Path, ray_local: None) -> None:
     from ray import tune
 
-    from codesign_mb.studies.sweep import tune_hyperparameters
+    from codesign_mb.studies.sweep_ray import tune_hyperparameters
 
     def trainable(config: dict[str, Any]) -> dict[str, float]:
         return {"loss": (config["lr"] - 0.01) ** 2, "seed_seen": float(config["seed"])}

@@ -18,7 +18,7 @@ from codesign_mb.network.link import BernoulliLink
 from codesign_mb.network.qos import QosRequest
 from codesign_mb.studies import sweep_conveyor as conveyor
 from codesign_mb.studies.sweep import GRID_COLUMNS, SweepConfig, plan_sweep, run_sweep
-from codesign_mb.studies.table import (
+from codesign_mb.studies.table_rows import (
     MPC_RULE_THRESHOLD_M,
     all_rows,
     model_based_rows,

@@ -13,18 +13,9 @@ from typer.testing import CliRunner
 
 from codesign_mb.cli import app
 from codesign_mb.core.registry import ComponentSpec
-from codesign_mb.studies.table import (
-    CPU_COLUMNS,
-    PLANT_PRESETS,
-    TableConfig,
-    TablePlant,
-    TableRow,
-    best_row,
-    pareto_front,
-    run_table,
-    stack_of,
-    training_cost,
-)
+from codesign_mb.studies.table import TableConfig, best_row, pareto_front, run_table
+from codesign_mb.studies.table_cost import CPU_COLUMNS, training_cost
+from codesign_mb.studies.table_rows import PLANT_PRESETS, TablePlant, TableRow, stack_of
 
 TOY_TABLE = """
 [table]

@@ -10,9 +10,9 @@ from codesign_mb.studies.fig_wifi import (
     CHANNEL_PRESETS,
     CapacityConfig,
     capacity_table,
-    plot_capacity,
     run_capacity,
 )
+from codesign_mb.studies.fig_wifi_figures import plot_capacity
 from codesign_mb.wifi import WifiConfig, generate_trace
 from codesign_mb.wifi.offline import airtime_prices
 

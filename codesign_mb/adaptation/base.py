@@ -20,10 +20,11 @@ class StaticQos:
     latency_steps: int = 0
 
     def __post_init__(self) -> None:
-        QosRequest(self.reliability, self.latency_steps)  # validates both fields
+        # Validates both fields; the request is immutable, so every packet can share it.
+        object.__setattr__(self, "_request", QosRequest(self.reliability, self.latency_steps))
 
     def reset(self, *, seed: int | None = None) -> None:
         return None
 
     def request(self, observation: NDArray[np.float64], age: int) -> QosRequest:
-        return QosRequest(self.reliability, self.latency_steps)
+        return self._request  # type: ignore[attr-defined]

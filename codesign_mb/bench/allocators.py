@@ -16,12 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from codesign_mb.wifi.allocators import (
-    ConvexAllocator,
-    ConvexAllocatorConfig,
-    GreedyEdfAllocator,
-    TickDemand,
-)
+from codesign_mb.wifi import ConvexAllocator, ConvexAllocatorConfig, GreedyEdfAllocator, TickDemand
 from codesign_mb.wifi.cell import generate_trace
 from codesign_mb.wifi.channel import ChannelConfig
 from codesign_mb.wifi.config import WifiConfig

@@ -19,7 +19,7 @@ from codesign_mb.cli.common import (
     track,
 )
 
-__all__ = ["register"]
+__all__ = ["register", "report_command"]
 
 
 _HELP = (
@@ -31,66 +31,64 @@ _HELP = (
 )
 
 
+def report_command(
+    ctx: typer.Context,
+    results_dir: Annotated[
+        Path,
+        typer.Argument(
+            help="Results folder (tables written by evaluate, table, wifi, sweep).",
+            file_okay=False,
+            show_default=False,
+        ),
+    ],
+    out: Annotated[
+        Path | None,
+        typer.Option(
+            "--out",
+            "-o",
+            help="Where figures and report.md go. \\[default: RESULTS_DIR/report]",
+        ),
+    ] = None,
+    dpi: Annotated[int, typer.Option(help="PNG resolution in dots per inch.")] = 120,
+    confidence: Annotated[
+        float, typer.Option(help="Confidence level of the success-rate intervals.")
+    ] = 0.95,
+    metric: Annotated[str, typer.Option(help="Column of sweep tables to plot.")] = "success_rate",
+    seed: SeedOption = 0,
+    config: ConfigOption = None,
+    as_json: JsonOption = False,
+) -> None:
+    """Render figures and a Markdown summary from RESULTS_DIR."""
+    from codesign_mb.studies.report import ReportConfig, build_report
+
+    cfg = load_config(
+        ReportConfig,
+        config,
+        explicit(ctx, {"dpi": dpi, "confidence": confidence, "seed": seed, "metric": metric}),
+        section="report",
+    )
+    result = build_report(
+        results_dir,
+        out,
+        cfg,
+        progress=lambda names: track(names, description="report", disable=as_json),
+    )
+    if not as_json:
+        for name, reason in result.skipped.items():
+            note(f"skipped {name}: {reason}")
+        note(f"report written to {result.markdown}")
+    emit(
+        {
+            "report": str(result.markdown),
+            "out_dir": str(result.out_dir),
+            "figures": {k: str(v) for k, v in result.figures.items()},
+            "skipped": result.skipped,
+        },
+        as_json=as_json,
+        title="report",
+    )
+
+
 def register(app: typer.Typer) -> None:
     """Add ``codesign report`` to ``app``."""
-
-    @app.command(help=_HELP)
-    @cli_errors
-    def report(
-        ctx: typer.Context,
-        results_dir: Annotated[
-            Path,
-            typer.Argument(
-                help="Results folder (tables written by evaluate, table, wifi, sweep).",
-                file_okay=False,
-                show_default=False,
-            ),
-        ],
-        out: Annotated[
-            Path | None,
-            typer.Option(
-                "--out",
-                "-o",
-                help="Where figures and report.md go. \\[default: RESULTS_DIR/report]",
-            ),
-        ] = None,
-        dpi: Annotated[int, typer.Option(help="PNG resolution in dots per inch.")] = 120,
-        confidence: Annotated[
-            float, typer.Option(help="Confidence level of the success-rate intervals.")
-        ] = 0.95,
-        metric: Annotated[
-            str, typer.Option(help="Column of sweep tables to plot.")
-        ] = "success_rate",
-        seed: SeedOption = 0,
-        config: ConfigOption = None,
-        as_json: JsonOption = False,
-    ) -> None:
-        """Render figures and a Markdown summary from RESULTS_DIR."""
-        from codesign_mb.studies.report import ReportConfig, build_report
-
-        cfg = load_config(
-            ReportConfig,
-            config,
-            explicit(ctx, {"dpi": dpi, "confidence": confidence, "seed": seed, "metric": metric}),
-            section="report",
-        )
-        result = build_report(
-            results_dir,
-            out,
-            cfg,
-            progress=lambda names: track(names, description="report", disable=as_json),
-        )
-        if not as_json:
-            for name, reason in result.skipped.items():
-                note(f"skipped {name}: {reason}")
-            note(f"report written to {result.markdown}")
-        emit(
-            {
-                "report": str(result.markdown),
-                "out_dir": str(result.out_dir),
-                "figures": {k: str(v) for k, v in result.figures.items()},
-                "skipped": result.skipped,
-            },
-            as_json=as_json,
-            title="report",
-        )
+    app.command("report", help=_HELP)(cli_errors(report_command))

@@ -1,17 +1,23 @@
 """``codesign train <stage>``: the model-free pipeline of paper.tex sec. 4, stage by stage.
 
-=====  ==========================================================  ===============================
-stage  what                                                        default output
-=====  ==========================================================  ===============================
+=====  ==========================================================  ===========================
+stage  what                                                        default output (``runs/``)
+=====  ==========================================================  ===========================
 a      SAC ideal controller on the perfect state                   checkpoints/stage_a
 b      MLP + LSTM estimators under the delay distribution          checkpoints/stage_b
 c      SAC QoS policy for a controller/estimator pair              checkpoints/stage_c_<estimator>
 d      synthesis: estimator under the learned QoS, QoS re-trained  checkpoints/stage_d
-=====  ==========================================================  ===============================
+=====  ==========================================================  ===========================
 
-Outputs go under the package's ``models`` folder unless ``--out`` says otherwise; the work
-folder (``runs/train/<stage>``: latest model, replay buffer, step counter) makes ``--resume``
-continue an interrupted run where its last checkpoint left it.
+Outputs go under ``runs/checkpoints/`` of the working directory unless ``--out`` says
+otherwise; nothing is written into the installed package's ``models`` folder (the shipped
+checkpoints are reproduced with ``--out models/checkpoints/<name>``, see
+``models/checkpoints/README.md``). A later stage reads its inputs from its config
+(``checkpoints/stage_a/model.zip`` etc.: the working directory, then the shipped ones), so
+chaining fresh runs means passing their paths, e.g.
+``--set controller.checkpoint=runs/checkpoints/stage_a/model.zip``. The work folder
+(``runs/train/<name>``: latest model, replay buffer, step counter) makes ``--resume`` continue
+an interrupted run where its last checkpoint left it.
 """
 
 from __future__ import annotations
@@ -34,9 +40,11 @@ from codesign_mb.cli.common import (
     track,
 )
 
-__all__ = ["register"]
+__all__ = ["register", "train"]
 
 STAGES = ("a", "b", "c", "d")
+RUNS = Path("runs")
+"""Where training writes by default, relative to the working directory."""
 
 
 def _parse_value(text: str) -> Any:
@@ -76,13 +84,41 @@ def _config_class(stage: str) -> type:
 
 
 def default_out(stage: str, config: Any) -> Path:
-    """Where a stage writes by default: ``<models>/checkpoints/stage_<x>``."""
-    from codesign_mb.core.registry import models_dir
-
+    """Where a stage writes by default: ``runs/checkpoints/stage_<x>`` (working directory)."""
     name = f"stage_{stage}"
     if stage == "c":
         name = f"stage_c_{config.estimator.kind}"
-    return models_dir() / "checkpoints" / name
+    return RUNS / "checkpoints" / name
+
+
+def stage_config(
+    stage: str,
+    config_file: Path | None,
+    *,
+    assignments: list[str],
+    seed: int | None,
+    steps: int | None,
+    estimator: str | None,
+) -> Any:
+    """The stage's config: its section of ``config_file``, then the command-line overrides.
+
+    ``--set`` assignments first, then ``--seed``, ``--steps`` and ``--estimator``.
+    """
+    overrides = _overrides(assignments)
+    if seed is not None:
+        overrides["seed"] = seed
+    if steps is not None:
+        if stage == "b":
+            raise ValueError("--steps does not apply to stage b (set train_episodes)")
+        overrides["total_steps" if stage != "d" else "qos.total_steps"] = steps
+    if estimator is not None:
+        if stage != "c":
+            raise ValueError("--estimator applies to stage c only")
+        overrides["estimator.kind"] = estimator
+        if estimator in ("none", "predictor"):
+            overrides["estimator.checkpoint"] = None
+    cfg: Any = load_config(_config_class(stage), config_file, {}, section=stage)
+    return _apply(cfg, overrides) if overrides else cfg
 
 
 def run_stage(
@@ -123,88 +159,80 @@ def run_stage(
     return train_stage_d(config, **kwargs)
 
 
+@cli_errors
+def train(
+    stage: Annotated[str, typer.Argument(help="Pipeline stage: a, b, c or d.")],
+    config: ConfigOption = None,
+    steps: Annotated[
+        int | None,
+        typer.Option("--steps", help="Total env steps (stages a, c, d); overrides the config."),
+    ] = None,
+    seed: Annotated[int | None, typer.Option("--seed", help="Root seed.")] = None,
+    estimator: Annotated[
+        str | None,
+        typer.Option(
+            "--estimator",
+            help="Stage c: the estimator kind the QoS policy is learned for "
+            "(mlp, lstm, none, predictor); its checkpoint comes from the config.",
+        ),
+    ] = None,
+    set_: Annotated[
+        list[str] | None,
+        typer.Option(
+            "--set",
+            help="Config override key=value (dotted keys, JSON values), repeatable: "
+            "--set plant.options.belt_speed_mps=0.6",
+        ),
+    ] = None,
+    out: Annotated[
+        Path | None,
+        typer.Option(
+            "--out",
+            "-o",
+            help="Output (checkpoint) folder (default runs/checkpoints/<name>; the shipped "
+            "ones: models/checkpoints/<name>).",
+            file_okay=False,
+        ),
+    ] = None,
+    work_dir: Annotated[
+        Path | None,
+        typer.Option(
+            "--work-dir",
+            help="Work folder for resume (default runs/train/<name>).",
+            file_okay=False,
+        ),
+    ] = None,
+    resume: Annotated[
+        bool, typer.Option("--resume", help="Continue from the work folder's checkpoint.")
+    ] = False,
+    as_json: JsonOption = False,
+) -> None:
+    """Train one stage of the model-free pipeline (checkpoint, curve, resumable)."""
+    stage = stage.lower()
+    if stage not in STAGES:
+        raise ValueError(f"stage must be one of {', '.join(STAGES)}, got {stage!r}")
+    cfg = stage_config(
+        stage, config, assignments=set_ or [], seed=seed, steps=steps, estimator=estimator
+    )
+    out_dir = out or default_out(stage, cfg)
+    result = run_stage(
+        stage,
+        cfg,
+        out_dir=out_dir,
+        work_dir=work_dir or RUNS / "train" / out_dir.name,
+        resume=resume,
+        progress=lambda it, total=None, description="": track(
+            it, total=total, description=description, disable=as_json
+        ),
+        command="codesign " + " ".join(shlex.quote(a) for a in sys.argv[1:]),
+    )
+    note(f"stage {stage}: checkpoint written to {out_dir}")
+    emit(result, as_json=as_json, title=f"stage {stage}")
+
+
 def register(app: typer.Typer) -> None:
-    @app.command("train")
-    @cli_errors
-    def train(
-        stage: Annotated[str, typer.Argument(help="Pipeline stage: a, b, c or d.")],
-        config: ConfigOption = None,
-        steps: Annotated[
-            int | None,
-            typer.Option("--steps", help="Total env steps (stages a, c, d); overrides the config."),
-        ] = None,
-        seed: Annotated[int | None, typer.Option("--seed", help="Root seed.")] = None,
-        estimator: Annotated[
-            str | None,
-            typer.Option(
-                "--estimator",
-                help="Stage c: the estimator kind the QoS policy is learned for "
-                "(mlp, lstm, none, predictor); its checkpoint comes from the config.",
-            ),
-        ] = None,
-        set_: Annotated[
-            list[str] | None,
-            typer.Option(
-                "--set",
-                help="Config override key=value (dotted keys, JSON values), repeatable: "
-                "--set plant.options.belt_speed_mps=0.6",
-            ),
-        ] = None,
-        out: Annotated[
-            Path | None,
-            typer.Option(
-                "--out", "-o", help="Output (shipped checkpoint) folder.", file_okay=False
-            ),
-        ] = None,
-        work_dir: Annotated[
-            Path | None,
-            typer.Option(
-                "--work-dir",
-                help="Work folder for resume (default runs/train/<x>).",
-                file_okay=False,
-            ),
-        ] = None,
-        resume: Annotated[
-            bool, typer.Option("--resume", help="Continue from the work folder's checkpoint.")
-        ] = False,
-        as_json: JsonOption = False,
-    ) -> None:
-        """Train one stage of the model-free pipeline (checkpoint, curve, resumable)."""
-        stage = stage.lower()
-        if stage not in STAGES:
-            raise ValueError(f"stage must be one of {', '.join(STAGES)}, got {stage!r}")
-        overrides = _overrides(set_ or [])
-        if seed is not None:
-            overrides["seed"] = seed
-        if steps is not None:
-            if stage == "b":
-                raise ValueError("--steps does not apply to stage b (set train_episodes)")
-            overrides["total_steps" if stage != "d" else "qos.total_steps"] = steps
-        if estimator is not None:
-            if stage != "c":
-                raise ValueError("--estimator applies to stage c only")
-            overrides["estimator.kind"] = estimator
-            if estimator in ("none", "predictor"):
-                overrides["estimator.checkpoint"] = None
-        cfg = load_config(_config_class(stage), config, {}, section=stage)
-        if overrides:
-            cfg = _apply(cfg, overrides)
-        out_dir = out or default_out(stage, cfg)
-        work = work_dir or Path("runs") / "train" / out_dir.name
-        command = "codesign " + " ".join(shlex.quote(a) for a in sys.argv[1:])
-        result = run_stage(
-            stage,
-            cfg,
-            out_dir=out_dir,
-            work_dir=work,
-            resume=resume,
-            progress=lambda it, total=None, description="": track(
-                it, total=total, description=description, disable=as_json
-            ),
-            command=command,
-        )
-        note(f"stage {stage}: checkpoint written to {out_dir}")
-        emit(result, as_json=as_json, title=f"stage {stage}")
+    """Add ``codesign train`` to ``app``."""
+    app.command("train")(train)
 
 
 def _apply(config: Any, overrides: dict[str, Any]) -> Any:

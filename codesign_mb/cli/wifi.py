@@ -20,7 +20,7 @@ from codesign_mb.cli.common import (
     track,
 )
 
-__all__ = ["register"]
+__all__ = ["capacity_command", "phy_table_command", "register", "trace_command"]
 
 
 def _parse_robots(text: str) -> tuple[int, ...]:
@@ -37,154 +37,130 @@ def _parse_robots(text: str) -> tuple[int, ...]:
         raise ValueError(f"robots must look like 1..8 or 1,2,4, got {text!r}") from None
 
 
+def phy_table_command(
+    bandwidth: Annotated[
+        int, typer.Option("--bandwidth", "-b", help="Channel width in MHz: 20, 40 or 80.")
+    ] = 40,
+    gi: Annotated[float, typer.Option("--gi", help="Guard interval in us: 0.8, 1.6 or 3.2.")] = 0.8,
+    streams: Annotated[int, typer.Option("--streams", help="Spatial streams: 1 or 2.")] = 1,
+    as_json: JsonOption = False,
+) -> None:
+    """802.11ax data rate (Mb/s) of every RU size and MCS 0-11 of the channel."""
+    from codesign_mb.wifi.phy import PhyConfig
+
+    phy = PhyConfig(bandwidth_mhz=bandwidth, guard_interval_us=gi, spatial_streams=streams)
+    emit(phy.rate_table(), as_json=as_json, title=f"802.11ax rates, {bandwidth} MHz, Mb/s")
+
+
+def trace_command(
+    out: Annotated[Path, typer.Argument(help="Instance file to write (JSON).", dir_okay=False)],
+    robots: Annotated[int, typer.Option("--robots", "-n", help="Number of robots.")] = 6,
+    steps: Annotated[int, typer.Option("--steps", help="Control steps (40 ms each).")] = 10,
+    reliability: Annotated[
+        float, typer.Option("--reliability", "-q", help="Requested reliability q in [0, 1].")
+    ] = 1.0,
+    latency: Annotated[
+        int, typer.Option("--latency", help="Latency request tau in steps (>= 1).")
+    ] = 1,
+    channel: Annotated[
+        str, typer.Option("--channel", help="Cell preset: paper or better.")
+    ] = "paper",
+    seed: SeedOption = 0,
+) -> None:
+    """Record a static-QoS traffic trace as an instance for ``codesign solve``."""
+    from codesign_mb.studies.fig_wifi import write_trace
+
+    t = write_trace(
+        out,
+        channel=channel,
+        robots=robots,
+        steps=steps,
+        reliability=reliability,
+        latency_steps=latency,
+        seed=seed,
+    )
+    note(f"wrote {out} ({len(t.frames)} frames, {t.horizon_ticks} ticks)")
+
+
+def capacity_command(
+    ctx: typer.Context,
+    robots: Annotated[
+        str, typer.Option("--robots", help="Robot counts: 1..8 or 1,2,4,8.")
+    ] = "1,2,4,6,8,10",
+    channels: Annotated[
+        str, typer.Option("--channels", help="Cell presets, comma separated: paper,better.")
+    ] = "paper,better",
+    schedulers: Annotated[
+        str, typer.Option("--schedulers", help="Allocators, comma separated: greedy,convex.")
+    ] = "greedy,convex",
+    stack: Annotated[
+        str,
+        typer.Option(
+            "--stack",
+            help="Plant and pipelines: conveyor (MuJoCo + MPC + predictor) or toy.",
+        ),
+    ] = "conveyor",
+    trials: Annotated[int, typer.Option("--trials", help="Episodes per point.")] = 4,
+    max_steps: Annotated[
+        int | None, typer.Option("--max-steps", help="Episode cap in steps (40 ms).")
+    ] = None,
+    workers: Annotated[
+        int, typer.Option("--workers", "-w", help="Processes running points in parallel.")
+    ] = 1,
+    out: OutOption = Path("results/fig_wifi"),
+    config: ConfigOption = None,
+    seed: SeedOption = 0,
+    as_json: JsonOption = False,
+) -> None:
+    """Task success vs number of robots on one channel (Fig. 6), per pipeline x scheduler.
+
+    Writes OUT/fig_wifi.parquet, .csv and .json (one row per trial) and OUT/fig_wifi.png,
+    and prints each curve with its capacity (most robots at 95 % success).
+
+    The plant and the pipelines (controller, estimator, QoS policy) come from --stack, or
+    from the config file's plant and pipelines tables (in a capacity table or at the top
+    level), which also takes robots_by_channel (e.g. better = [8, 16, 32]).
+    """
+    from codesign_mb.studies.fig_wifi import CapacityConfig
+    from codesign_mb.studies.fig_wifi_figures import run_capacity_study
+
+    overrides: dict[str, Any] = explicit(
+        ctx,
+        {
+            "robots": robots,
+            "channels": channels,
+            "schedulers": schedulers,
+            "stack": stack,
+            "trials": trials,
+            "max_steps": max_steps,
+            "workers": workers,
+            "seed": seed,
+        },
+    )
+    for key in ("channels", "schedulers"):
+        if key in overrides:
+            overrides[key] = [s.strip() for s in str(overrides[key]).split(",") if s.strip()]
+    if "robots" in overrides:
+        overrides["robots"] = list(_parse_robots(str(overrides["robots"])))
+    cfg = load_config(CapacityConfig, config, overrides, section="capacity")
+    n_points = len(cfg.points())
+    _, curves, files = run_capacity_study(
+        cfg,
+        out,
+        progress=lambda pts: track(pts, total=n_points, description="capacity", disable=as_json),
+    )
+    if not as_json:
+        note(f"results written to {files['parquet']}, {files['csv']} and {files['png']}")
+    emit(curves, as_json=as_json, title="task success vs robots (fig_wifi)")
+
+
 def register(app: typer.Typer) -> None:
     """Add ``codesign wifi ...`` to ``app``."""
     wifi = typer.Typer(
         help="WiFi 6 OFDMA cell: PHY rates, allocation traces, capacity (Fig. 6).",
         no_args_is_help=True,
     )
+    wifi.command("phy-table")(cli_errors(phy_table_command))
+    wifi.command("trace")(cli_errors(trace_command))
+    wifi.command("capacity")(cli_errors(capacity_command))
     app.add_typer(wifi, name="wifi")
-
-    @wifi.command("phy-table")
-    @cli_errors
-    def phy_table(
-        bandwidth: Annotated[
-            int, typer.Option("--bandwidth", "-b", help="Channel width in MHz: 20, 40 or 80.")
-        ] = 40,
-        gi: Annotated[
-            float, typer.Option("--gi", help="Guard interval in us: 0.8, 1.6 or 3.2.")
-        ] = 0.8,
-        streams: Annotated[int, typer.Option("--streams", help="Spatial streams: 1 or 2.")] = 1,
-        as_json: JsonOption = False,
-    ) -> None:
-        """802.11ax data rate (Mb/s) of every RU size and MCS 0-11 of the channel."""
-        from codesign_mb.wifi.phy import PhyConfig
-
-        phy = PhyConfig(bandwidth_mhz=bandwidth, guard_interval_us=gi, spatial_streams=streams)
-        emit(phy.rate_table(), as_json=as_json, title=f"802.11ax rates, {bandwidth} MHz, Mb/s")
-
-    @wifi.command("trace")
-    @cli_errors
-    def trace(
-        out: Annotated[Path, typer.Argument(help="Instance file to write (JSON).", dir_okay=False)],
-        robots: Annotated[int, typer.Option("--robots", "-n", help="Number of robots.")] = 6,
-        steps: Annotated[int, typer.Option("--steps", help="Control steps (40 ms each).")] = 10,
-        reliability: Annotated[
-            float, typer.Option("--reliability", "-q", help="Requested reliability q in [0, 1].")
-        ] = 1.0,
-        latency: Annotated[
-            int, typer.Option("--latency", help="Latency request tau in steps (>= 1).")
-        ] = 1,
-        channel: Annotated[
-            str, typer.Option("--channel", help="Cell preset: paper or better.")
-        ] = "paper",
-        seed: SeedOption = 0,
-    ) -> None:
-        """Record a static-QoS traffic trace as an instance for ``codesign solve``."""
-        from codesign_mb.studies.fig_wifi import CHANNEL_PRESETS
-        from codesign_mb.wifi.cell import generate_trace
-
-        if channel not in CHANNEL_PRESETS:
-            raise ValueError(f"channel must be one of {sorted(CHANNEL_PRESETS)}, got {channel!r}")
-        if steps < 1 or robots < 1:
-            raise ValueError(f"steps and robots must be >= 1, got {steps} and {robots}")
-        t = generate_trace(
-            CHANNEL_PRESETS[channel],
-            robots,
-            steps=steps,
-            reliability=reliability,
-            latency_steps=latency,
-            seed=seed,
-        )
-        out.parent.mkdir(parents=True, exist_ok=True)
-        t.save(out)
-        note(f"wrote {out} ({len(t.frames)} frames, {t.horizon_ticks} ticks)")
-
-    @wifi.command("capacity")
-    @cli_errors
-    def capacity(
-        ctx: typer.Context,
-        robots: Annotated[
-            str, typer.Option("--robots", help="Robot counts: 1..8 or 1,2,4,8.")
-        ] = "1,2,4,6,8,10",
-        channels: Annotated[
-            str, typer.Option("--channels", help="Cell presets, comma separated: paper,better.")
-        ] = "paper,better",
-        schedulers: Annotated[
-            str, typer.Option("--schedulers", help="Allocators, comma separated: greedy,convex.")
-        ] = "greedy,convex",
-        stack: Annotated[
-            str,
-            typer.Option(
-                "--stack",
-                help="Plant and pipelines: conveyor (MuJoCo + MPC + predictor) or toy.",
-            ),
-        ] = "conveyor",
-        trials: Annotated[int, typer.Option("--trials", help="Episodes per point.")] = 4,
-        max_steps: Annotated[
-            int | None, typer.Option("--max-steps", help="Episode cap in steps (40 ms).")
-        ] = None,
-        workers: Annotated[
-            int, typer.Option("--workers", "-w", help="Processes running points in parallel.")
-        ] = 1,
-        out: OutOption = Path("results/fig_wifi"),
-        config: ConfigOption = None,
-        seed: SeedOption = 0,
-        as_json: JsonOption = False,
-    ) -> None:
-        """Task success vs number of robots on one channel (Fig. 6), per pipeline x scheduler.
-
-        Writes OUT/fig_wifi.parquet, .csv and .json (one row per trial) and OUT/fig_wifi.png,
-        and prints each curve with its capacity (most robots at 95 % success).
-
-        The plant and the pipelines (controller, estimator, QoS policy) come from --stack, or
-        from the config file's plant and pipelines tables (in a capacity table or at the top
-        level), which also takes robots_by_channel (e.g. better = [8, 16, 32]).
-        """
-        from codesign_mb.core.config import to_mapping
-        from codesign_mb.core.results import write_results
-        from codesign_mb.studies.fig_wifi import (
-            CapacityConfig,
-            capacity_table,
-            plot_capacity,
-            run_capacity,
-        )
-
-        overrides: dict[str, Any] = explicit(
-            ctx,
-            {
-                "robots": robots,
-                "channels": channels,
-                "schedulers": schedulers,
-                "stack": stack,
-                "trials": trials,
-                "max_steps": max_steps,
-                "workers": workers,
-                "seed": seed,
-            },
-        )
-        for key in ("channels", "schedulers"):
-            if key in overrides:
-                overrides[key] = [s.strip() for s in str(overrides[key]).split(",") if s.strip()]
-        if "robots" in overrides:
-            overrides["robots"] = list(_parse_robots(str(overrides["robots"])))
-        cfg = load_config(CapacityConfig, config, overrides, section="capacity")
-        n_points = len(cfg.points())
-        results = run_capacity(
-            cfg,
-            progress=lambda pts: track(
-                pts, total=n_points, description="capacity", disable=as_json
-            ),
-        )
-        table = capacity_table(results, success_target=cfg.success_target)
-        paths = write_results(
-            out,
-            table=results,
-            config=to_mapping(cfg),
-            name="fig_wifi",
-            extra={"curves": table.to_dict("records")},
-        )
-        png = plot_capacity(results, Path(out) / "fig_wifi.png", success_target=cfg.success_target)
-        if not as_json:
-            note(f"results written to {paths['parquet']}, {paths['csv']} and {png}")
-        emit(table, as_json=as_json, title="task success vs robots (fig_wifi)")

@@ -85,9 +85,14 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from codesign_mb.control.conic_buffer import ConicBuffer
+from codesign_mb.control.mpc_kernels import fill_parameters, stopping_bounds, worst_violation
+
 __all__ = ["MpcConfig", "MpcController", "MpcQp", "Phase"]
 
 _SOLVERS = ("qpoases", "osqp", "daqp")
+_SUCCESS_STATUS = {"qpoases": "Successful return."}
+"""What a solver's ``return_status`` says on success, when it is known without asking."""
 
 OFF = 1e3
 """A constraint whose lower bound is ``-OFF`` metres is inactive."""
@@ -296,8 +301,11 @@ class MpcQp:
     clearance plane's height. The QP data
     are affine in ``theta``: ``g = G theta + g0``, bounds ``= const - (B theta + b0)``; the
     Hessian ``H`` and the constraint matrix ``A`` are constant. :meth:`solve` evaluates these
-    maps with numpy and calls the ``casadi.conic`` solver made once; warm start comes from
-    qpOASES' hot start (or the shifted previous solution for OSQP/DAQP).
+    maps (numpy products, the rest compiled in :mod:`~codesign_mb.control.mpc_kernels`)
+    straight into the arrays bound to the ``casadi.conic`` solver's buffer
+    (:class:`~codesign_mb.control.conic_buffer.ConicBuffer`; ``H`` and ``A`` set once per
+    instance); :meth:`qp_data` is the same data as a dict. Warm start comes from qpOASES'
+    hot start (or the shifted previous solution for OSQP/DAQP).
 
     Parameters
     ----------
@@ -411,6 +419,12 @@ class MpcQp:
             "clearance": slice(10 * n, 11 * n),
         }
         self._ca = ca
+        # Work arrays of the hot path (solve), allocated once.
+        self._k_step = np.arange(n + 1)[:, None] * (acc_bound / (1.0 - a))  # k * step, k = 0..N
+        self._offset = np.empty(self.n_con)
+        self._low = self.con_low.copy()
+        self._high = self.con_high.copy()
+        self._ax = np.empty(self.n_con)
 
     def _make_solver(self) -> Any:
         with _quiet_stdout():  # qpOASES prints its licence banner on every instance
@@ -442,6 +456,12 @@ class MpcQp:
         self._x0 = np.zeros(self.n_var)
         self._lam_x0 = np.zeros(self.n_var)
         self._lam_a0 = np.zeros(self.n_con)
+        with _quiet_stdout():  # a new solver memory: qpOASES prints its banner again
+            self._conic = ConicBuffer(
+                self._solver, {"h": self._H_dm.nonzeros(), "a": self._A_dm.nonzeros()}
+            )
+        self._conic.inputs["lbx"][:] = self.var_low
+        self._conic.inputs["ubx"][:] = self.var_high
 
     # -- runtime ------------------------------------------------------------------------
     def pack(
@@ -506,14 +526,14 @@ class MpcQp:
         """
         a, bp_v, bp_u = self._model
         step = self._acc_bound / (1.0 - a)
+        if a == 0.0:  # the velocity is the command: closed form
+            v = np.asarray(velocity, dtype=float)
+            speeds = np.maximum(np.abs(v) - self._k_step, 0.0)
+            np.minimum(speeds[1:], self.v_max, out=speeds[1:])
+            vs = np.sign(v) * speeds  # v[0..N]; u[k] = v[k+1]
+            return position + np.cumsum(bp_v * vs[:-1] + bp_u * vs[1:], axis=0)
         p = np.asarray(position, dtype=float).copy()
         v = np.asarray(velocity, dtype=float).copy()
-        if a == 0.0:  # the velocity is the command: closed form
-            k = np.arange(self.n + 1)[:, None]
-            speeds = np.maximum(np.abs(v) - k * step, 0.0)
-            speeds[1:] = np.minimum(speeds[1:], self.v_max)
-            vs = np.sign(v) * speeds  # v[0..N]; u[k] = v[k+1]
-            return p + np.cumsum(bp_v * vs[:-1] + bp_u * vs[1:], axis=0)
         out = np.empty((self.n, 3))
         for k in range(self.n):
             u = np.clip(np.sign(v) * np.maximum(np.abs(v) - step, 0.0), -self.v_max, self.v_max)
@@ -523,53 +543,79 @@ class MpcQp:
         return out
 
     def solve(self, theta: NDArray[np.float64]) -> MpcSolution:
-        """Solve the QP at ``theta`` (warm-started from the previous solve)."""
-        data = self.qp_data(theta)
-        args = {
-            "h": self._H_dm,
-            "g": data["g"],
-            "a": self._A_dm,
-            "lba": data["lba"],
-            "uba": data["uba"],
-            "lbx": data["lbx"],
-            "ubx": data["ubx"],
-        }
+        """Solve the QP at ``theta`` (warm-started from the previous solve).
+
+        The data of :meth:`qp_data` are written into the arrays bound to the solver's buffer
+        (:class:`~codesign_mb.control.conic_buffer.ConicBuffer`), so a step converts nothing.
+        """
+        conic = self._conic
+        inputs = conic.inputs
+        self._fill(np.asarray(theta, dtype=float), inputs["g"], inputs["lba"], inputs["uba"])
         if self._warm_inputs:  # qpOASES hot-starts from its own active set instead
-            args.update(x0=self._x0, lam_x0=self._lam_x0, lam_a0=self._lam_a0)
-        with _quiet_stdout():
+            inputs["x0"][:] = self._x0
+            inputs["lam_x0"][:] = self._lam_x0
+            inputs["lam_a0"][:] = self._lam_a0
+        saved, sys.stdout = sys.stdout, _NULL_TEXT  # as _quiet_stdout, without its overhead
+        try:
             start_cpu = time.thread_time()
             start = time.perf_counter()
-            out = self._solver.call(args)
+            flag = conic()
             elapsed = time.perf_counter() - start
             cpu = time.thread_time() - start_cpu
-        stats = self._solver.stats()
-        x = np.fromiter(out["x"].nonzeros(), float, self.n_var)
-        ok = bool(stats.get("success", False)) and self._feasible(x, data)
-        status = str(stats.get("return_status", ""))
+        finally:
+            sys.stdout = saved
+        outputs = conic.outputs
+        x = outputs["x"].copy()
+        # qpOASES: CasADi's unified return status is 0 exactly when it returned successfully.
+        success = bool(conic.stats().get("success", False)) if self._warm_inputs else flag == 0
         n = self.n
-        if not ok:
+        if not (success and self._feasible(x, inputs)):
+            status = str(conic.stats().get("return_status", ""))
             self.reset()  # never hot-start from a failed solve
             return MpcSolution(np.zeros((n, 3)), False, status or "failed", elapsed, 0.0, cpu)
         if self._warm_inputs:  # shifted primal, previous duals
             self._x0 = np.concatenate([x[3 : 3 * n], x[3 * n - 3 : 3 * n], x[3 * n :]])
-            self._lam_x0 = np.fromiter(out["lam_x"].nonzeros(), float, self.n_var)
-            self._lam_a0 = np.fromiter(out["lam_a"].nonzeros(), float, self.n_con)
+            self._lam_x0 = outputs["lam_x"].copy()
+            self._lam_a0 = outputs["lam_a"].copy()
+        status = _SUCCESS_STATUS.get(self.config.solver) or str(conic.stats()["return_status"])
         return MpcSolution(x[: 3 * n].reshape(n, 3), True, status, elapsed, float(x[3 * n]), cpu)
+
+    def _fill(
+        self,
+        theta: NDArray[np.float64],
+        g: NDArray[np.float64],
+        lba: NDArray[np.float64],
+        uba: NDArray[np.float64],
+    ) -> None:
+        """Write :meth:`qp_data`'s ``g``, ``lba``, ``uba`` at ``theta`` into the given arrays."""
+        np.matmul(self.G, theta, out=g)
+        g += self.g0
+        offset = self._offset
+        np.matmul(self.B, theta, out=offset)
+        offset += self.b0
+        a, bp_v, bp_u = self._model
+        if a == 0.0:  # compiled closed form, the same arithmetic as below
+            row0 = self.rows["workspace"].start
+            stopping_bounds(
+                theta[0:3], theta[3:6], self._k_step, self.v_max, bp_v, bp_u,
+                self.con_low, self.con_high, row0, offset, lba, uba,
+            )  # fmt: skip
+            return
+        low, high = self._low, self._high
+        rows = self.rows["workspace"]
+        stop = self.stopping_path(theta[0:3], theta[3:6]).ravel()
+        np.minimum(self.con_low[rows], stop, out=low[rows])
+        np.maximum(self.con_high[rows], stop, out=high[rows])
+        np.subtract(low, offset, out=lba)
+        np.subtract(high, offset, out=uba)
 
     def _feasible(
         self, x: NDArray[np.float64], data: Mapping[str, NDArray], tol: float = 1e-5
     ) -> bool:
         """Whether ``x`` satisfies the hard bounds (a solver's "success" is not taken on trust)."""
-        if not np.all(np.isfinite(x)):
-            return False
-        ax = self.A @ x
-        worst = max(
-            float(np.max(data["lbx"] - x)),
-            float(np.max(x - data["ubx"])),
-            float(np.max(data["lba"] - ax)),
-            float(np.max(ax - data["uba"])),
-        )
-        return worst <= tol
+        ax = np.matmul(self.A, x, out=self._ax)
+        worst = worst_violation(x, ax, data["lbx"], data["ubx"], data["lba"], data["uba"])
+        return bool(worst <= tol)
 
     def __getstate__(self) -> dict[str, Any]:
         # The CasADi objects are rebuilt on unpickling (worker processes).
@@ -635,6 +681,7 @@ class MpcController:
         self.max_speed_mps = float(max_speed_mps)
         self.belt_velocity = np.asarray(belt_velocity, dtype=float).reshape(3)
         self.qp = MpcQp(self.config, dt=self.control_period_s, max_speed_mps=self.max_speed_mps)
+        self._prepare()
         self.total_failures = 0
         self.recorder: list[NDArray[np.float64]] | None = None
         """When a list, every QP parameter vector solved is appended (benchmarks replay them)."""
@@ -686,7 +733,10 @@ class MpcController:
         obs = np.asarray(observation, dtype=float)
         grip_pos = obs[self.layout["gripper_pos"]]
         grip_vel = obs[self.layout["gripper_vel"]]
-        width = float(np.mean(obs[self.layout["finger_width"]]))
+        if self._width_index is None:
+            width = float(np.mean(obs[self.layout["finger_width"]]))
+        else:  # one entry: its mean is itself
+            width = float(obs[self._width_index])
         obj = obs[self.layout["object_pos"]]
         if "object_vel" in self.layout:
             obj_vel = obs[self.layout["object_vel"]]
@@ -709,11 +759,25 @@ class MpcController:
             u = self._safe_command(grip_pos)
         self._u_prev = u
         action = np.empty(4)
-        action[:3] = np.clip(u / self.max_speed_mps, -1.0, 1.0)
+        np.minimum(np.maximum(u / self.max_speed_mps, -1.0), 1.0, out=action[:3])  # np.clip
         action[3] = self._grip
         return action
 
     # -- phase logic ----------------------------------------------------------------------
+    def _prepare(self) -> None:
+        """Constants and the parameter vector's views, so a step allocates little."""
+        cfg, n, dt = self.config, self.qp.n, self.control_period_s
+        self._kdt = np.arange(1, n + 1)[:, None] * dt  # k dt, k = 1..N
+        self._offset = np.asarray(cfg.grasp_offset_m)
+        self._hover = np.array([0.0, 0.0, cfg.hover_height_m])
+        self._lift = np.array([0.0, 0.0, cfg.lift_height_m])
+        self._ws_low = np.asarray(cfg.workspace_low)
+        self._ws_high = np.asarray(cfg.workspace_high)
+        width = self.layout["finger_width"]
+        indices = range(width.stop)[width] if width.stop is not None else range(0)
+        self._width_index: int | None = indices[0] if len(indices) == 1 else None
+        self._theta = np.empty(self.qp.n_theta)  # the layout of MpcQp.pack
+
     def _parameters(
         self,
         p: NDArray[np.float64],
@@ -722,18 +786,19 @@ class MpcController:
         obj: NDArray[np.float64],
         obj_vel: NDArray[np.float64],
     ) -> NDArray[np.float64]:
-        cfg, n, dt = self.config, self.qp.n, self.control_period_s
-        offset = np.asarray(cfg.grasp_offset_m)
-        k = np.arange(1, n + 1)[:, None]
-        grasp_path = obj + offset + k * dt * obj_vel  # (N, 3) grasp point along the belt
-        err = p - (obj + offset)
-        lateral = float(np.hypot(err[0], err[1]))
+        """Advance the phase and return ``theta`` (:meth:`MpcQp.pack`), written in place."""
+        cfg = self.config
+        p0, p1, p2 = p.tolist()
+        o0, o1, o2 = obj.tolist()
+        g0, g1, g2 = self._offset.tolist()
+        e0, e1, e2 = p0 - (o0 + g0), p1 - (o1 + g1), p2 - (o2 + g2)  # p - (obj + offset)
+        lateral = float(np.hypot(e0, e1))
         if self.phase == Phase.APPROACH and lateral <= cfg.align_tolerance_m:
             self.phase = Phase.DESCEND
         elif self.phase == Phase.DESCEND:
             if lateral > cfg.abort_tolerance_m:
                 self.phase = Phase.APPROACH
-            elif lateral <= cfg.grasp_tolerance_m and abs(err[2]) <= cfg.grasp_height_tolerance_m:
+            elif lateral <= cfg.grasp_tolerance_m and abs(e2) <= cfg.grasp_height_tolerance_m:
                 self.phase = Phase.GRASP
                 self._closing = 0
         elif self.phase == Phase.GRASP:
@@ -748,26 +813,13 @@ class MpcController:
             self.phase = Phase.APPROACH
             self._lift_origin = None
         self._grip = 1.0 if self.phase in (Phase.GRASP, Phase.LIFT) else -1.0
-        apex = grasp_path.copy()
-        apex[:, 2] -= cfg.funnel_apex_depth_m
-        plane = np.full(n, -OFF)
-        if self.phase == Phase.APPROACH:
-            ref = grasp_path + np.array([0.0, 0.0, cfg.hover_height_m])
-            vref = np.tile(obj_vel, (n, 1))
-            plane = grasp_path[:, 2] + cfg.clearance_m  # stay above until aligned
-            apex[:, 2] = -OFF
-        elif self.phase in (Phase.DESCEND, Phase.GRASP):
-            ref = grasp_path
-            vref = np.tile(obj_vel, (n, 1))
-        else:
-            origin = self._lift_origin if self._lift_origin is not None else p
-            ref = np.tile(origin + np.array([0.0, 0.0, cfg.lift_height_m]), (n, 1))
-            vref = np.zeros((n, 3))
-            apex[:, 2] = -OFF
-        lo = np.asarray(cfg.workspace_low)
-        hi = np.asarray(cfg.workspace_high)
-        ref = np.clip(ref, lo, hi)
-        return self.qp.pack(p, v, self._u_prev, ref, vref, apex, plane)
+        origin = self._lift_origin if self._lift_origin is not None else p
+        fill_parameters(
+            self._theta, p, v, self._u_prev, obj, self._offset, obj_vel, self._kdt,
+            int(self.phase), self._hover, cfg.clearance_m, cfg.funnel_apex_depth_m, self._lift,
+            origin, self._ws_low, self._ws_high, OFF,
+        )  # fmt: skip
+        return self._theta
 
     def _safe_command(self, p: NDArray[np.float64]) -> NDArray[np.float64]:
         lo = np.asarray(self.config.workspace_low)

@@ -27,7 +27,7 @@ qos_feat.  ``predictor_std``  ``adaptation.learned.PredictorStdFeature`` on a pr
 plant      ``conveyor``       ``plants.conveyor.ConveyorPickPlace`` (``ConveyorConfig`` options)
 plant      ``toy``            ``plants.toy.ToyConveyor`` (``ToyConveyorConfig`` options)
 allocator  ``greedy``         ``wifi.allocators.GreedyEdfAllocator``
-allocator  ``convex``         ``wifi.allocators.ConvexAllocator`` (OSQP hot path)
+allocator  ``convex``         ``wifi.convex.ConvexAllocator`` (OSQP hot path)
 allocator  ``convex-cvxpy``   the same allocator solved through its cvxpy model
 ========== ================== ==========================================================
 

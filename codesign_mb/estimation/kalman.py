@@ -127,13 +127,20 @@ def _correct(
     x: FloatArray, P: FloatArray, z: FloatArray, C: FloatArray, R: FloatArray, eye: FloatArray
 ) -> tuple[FloatArray, FloatArray]:
     """Measurement update with the Joseph form (symmetric, PSD under rounding)."""
+    K, P = _gain_and_covariance(P, C, R, eye)
+    return x + K @ (z - C @ x), P
+
+
+def _gain_and_covariance(
+    P: FloatArray, C: FloatArray, R: FloatArray, eye: FloatArray
+) -> tuple[FloatArray, FloatArray]:
+    """The gain ``K`` and the covariance of :func:`_correct` (they depend on ``P`` only)."""
     PCt = P @ C.T
     S = C @ PCt + R
     K = np.linalg.solve(S, PCt.T).T  # P C' S^{-1}, S symmetric
-    x = x + K @ (z - C @ x)
     IKC = eye - K @ C
     P = IKC @ P @ IKC.T + K @ R @ K.T
-    return x, 0.5 * (P + P.T)
+    return K, 0.5 * (P + P.T)
 
 
 @dataclass(slots=True)
@@ -228,6 +235,8 @@ class IntermittentKalmanFilter:
             raise ValueError(f"max_delay_steps must be an integer >= 0, got {max_delay_steps!r}")
         self.max_delay_steps = int(max_delay_steps)
         self._eye = np.eye(n)
+        self._memo_predict: dict[tuple[bool, bytes], FloatArray] = {}
+        self._memo_correct: dict[tuple[bool, bytes], tuple[FloatArray, FloatArray]] = {}
         self._history: deque[_Step] = deque(maxlen=self.max_delay_steps + 1)
         self._x: FloatArray | None = None
         self._P: FloatArray | None = None
@@ -326,7 +335,7 @@ class IntermittentKalmanFilter:
         step = self._history[-1]
         step.A, step.Q, step.u = A_t, Q_t, u_t
         assert self._x is not None and self._P is not None
-        self._x, self._P = _predict(self._x, self._P, A_t, Q_t, self.B, u_t)
+        self._x, self._P = self._time_update(self._x, self._P, A_t, Q_t, u_t)
         self._t += 1
         self._history.append(_Step(self._t, self._x, self._P))
 
@@ -369,7 +378,7 @@ class IntermittentKalmanFilter:
         self._history[k].measurements.append(z_arr)
         if s == self._t:
             assert self._x is not None and self._P is not None
-            self._x, self._P = _correct(self._x, self._P, z_arr, self.C, self.R, self._eye)
+            self._x, self._P = self._measurement_update(self._x, self._P, z_arr)
         else:
             self._refilter(k)
         return True
@@ -384,11 +393,54 @@ class IntermittentKalmanFilter:
             if j > k:
                 step.x_prior, step.P_prior = x, P
             for z in step.measurements:
-                x, P = _correct(x, P, z, self.C, self.R, self._eye)
+                x, P = self._measurement_update(x, P, z)
             if j < last:
                 assert step.A is not None and step.Q is not None
-                x, P = _predict(x, P, step.A, step.Q, self.B, step.u)
+                x, P = self._time_update(x, P, step.A, step.Q, step.u)
         self._x, self._P = x, P
+
+    # The covariance recursion depends on P only (for the constructor's A, Q and the fixed C,
+    # R), and the same P recurs: across episodes with the same prior and deliveries, and at
+    # the floating-point fixed point of the Riccati map. Its results are memoised by the
+    # exact bytes of P, so a hit returns what the computation would (the mean is always
+    # computed).
+    _MEMO_SIZE = 4096
+
+    def _memo_key(self, P: FloatArray) -> tuple[bool, bytes]:
+        return bool(P.flags.c_contiguous), P.tobytes()
+
+    def _time_update(
+        self, x: FloatArray, P: FloatArray, A: FloatArray, Q: FloatArray, u: FloatArray | None
+    ) -> tuple[FloatArray, FloatArray]:
+        """:func:`_predict`, with ``P+`` memoised for the constructor's ``A`` and ``Q``."""
+        if A is not self.A or Q is not self.Q:
+            return _predict(x, P, A, Q, self.B, u)
+        key = self._memo_key(P)
+        P_next = self._memo_predict.get(key)
+        if P_next is None:
+            x, P_next = _predict(x, P, A, Q, self.B, u)
+            if len(self._memo_predict) >= self._MEMO_SIZE:
+                self._memo_predict.clear()
+            self._memo_predict[key] = P_next
+            return x, P_next
+        x = A @ x
+        if self.B is not None and u is not None:
+            x = x + self.B @ u
+        return x, P_next
+
+    def _measurement_update(
+        self, x: FloatArray, P: FloatArray, z: FloatArray
+    ) -> tuple[FloatArray, FloatArray]:
+        """:func:`_correct`, with the gain and ``P+`` memoised."""
+        key = self._memo_key(P)
+        hit = self._memo_correct.get(key)
+        if hit is None:
+            hit = _gain_and_covariance(P, self.C, self.R, self._eye)
+            if len(self._memo_correct) >= self._MEMO_SIZE:
+                self._memo_correct.clear()
+            self._memo_correct[key] = hit
+        K, P_next = hit
+        return x + K @ (z - self.C @ x), P_next
 
     def _require_reset(self) -> None:
         if self._x is None:

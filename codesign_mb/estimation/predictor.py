@@ -118,6 +118,11 @@ class DelayCompensatingPredictor:
         if len(self._pos) != 3:
             raise ValueError(f"object_pos must have 3 entries, got {len(self._pos)}")
         self._vel = _indices(self.layout["object_vel"]) if "object_vel" in self.layout else None
+        measured = self._pos if self._vel is None else np.concatenate([self._pos, self._vel])
+        step = np.diff(measured)
+        self._measured: slice | None = (  # the same entries as a slice, when contiguous
+            slice(int(measured[0]), int(measured[-1]) + 1) if np.all(step == 1) else None
+        )
         self.control_period_s = float(control_period_s)
         self.prior_velocity = np.asarray(prior_velocity, dtype=float).reshape(3)
         self.position_noise_std = float(position_noise_std)
@@ -166,9 +171,13 @@ class DelayCompensatingPredictor:
     def reset(self, observation: NDArray[np.float64]) -> NDArray[np.float64]:
 
         plant_obs, age = split_networked_observation(observation)
-        self._kf = IntermittentKalmanFilter(
-            self.A, self.C, self.Q, self.R, max_delay_steps=self.max_delay_steps
-        )
+        model = (self.A, self.C, self.Q, self.R, self.max_delay_steps)
+        if self._kf is None or any(a is not b for a, b in zip(model, self._kf_model, strict=True)):
+            # One filter, reset per episode: its covariance memo persists across episodes.
+            self._kf = IntermittentKalmanFilter(
+                self.A, self.C, self.Q, self.R, max_delay_steps=self.max_delay_steps
+            )
+            self._kf_model = model
         x0 = np.concatenate([plant_obs[self._pos], self.prior_velocity])
         self._kf.reset(x0, self.prior_covariance)
         self._t = 0
@@ -183,9 +192,14 @@ class DelayCompensatingPredictor:
         if self._kf is None:
             raise RuntimeError("call reset() before estimate()")
         plant_obs, age = split_networked_observation(observation)
-        self._kf.predict()
         self._t += 1
-        self._incorporate(plant_obs, age)
+        if age > 0:  # a packet from before t: filter it in first (no predict to redo), as
+            # IntermittentKalmanFilter.update would re-filter from its stamp after predict()
+            self._incorporate(plant_obs, age)
+            self._kf.predict()
+        else:
+            self._kf.predict()
+            self._incorporate(plant_obs, age)
         return self._output(plant_obs)
 
     # -- internals ----------------------------------------------------------------------
@@ -198,15 +212,21 @@ class DelayCompensatingPredictor:
         self._last_stamp = stamp
         if self._t - stamp > self.max_delay_steps:
             return  # too old to re-filter; the prediction carries on
-        z = plant_obs[self._pos]
-        if self._vel is not None:
-            z = np.concatenate([z, plant_obs[self._vel]])
+        if self._measured is not None:  # position (and velocity) side by side
+            z = plant_obs[self._measured]
+        else:
+            z = plant_obs[self._pos]
+            if self._vel is not None:
+                z = np.concatenate([z, plant_obs[self._vel]])
         self._kf.update(z, stamp)
         self.updates += 1
 
     def _output(self, plant_obs: NDArray[np.float64]) -> NDArray[np.float64]:
         out = np.array(plant_obs, dtype=float, copy=True)
-        x = np.asarray(self._kf.x, dtype=float)
+        x = self._kf._x  # read only: the filter's current mean
+        if self._measured is not None:
+            out[self._measured] = x if self._vel is not None else x[:3]
+            return out
         out[self._pos] = x[:3]
         if self._vel is not None:
             out[self._vel] = x[3:]

@@ -140,7 +140,8 @@ class ObservationBuffer:
         while self._in_flight and self._in_flight[0][0] <= t:
             _, stamp, _, value = heapq.heappop(self._in_flight)
             arrived.append(Packet(stamp, value))
-        arrived.sort(key=lambda p: p.timestamp)
+        if len(arrived) > 1:
+            arrived.sort(key=lambda p: p.timestamp)
         for packet in arrived:
             if self._latest is None or packet.timestamp > self._latest.timestamp:
                 self._latest = packet

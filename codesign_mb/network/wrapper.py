@@ -111,9 +111,10 @@ class LinkObservationWrapper(gym.Wrapper):
         remote = np.asarray(obs[self.remote_slice], dtype=float)
         rx = self.link.step(remote, qos)
         self._last = rx
-        out = np.array(obs, copy=True)
+        out = np.empty(len(obs) + 1, dtype=self.observation_space.dtype)
+        out[:-1] = obs
         out[self.remote_slice] = rx.observation  # eq_output
-        out = np.append(out, rx.age).astype(self.observation_space.dtype)
+        out[-1] = rx.age
         info = dict(info)
         info.update(
             qos_reliability=qos.reliability,

@@ -9,6 +9,7 @@ robot ``i`` is DESIGN.md's data flow: the QoS policy and the link live in the
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any, Protocol
@@ -86,7 +87,7 @@ class ClosedLoop:
         self.observation: NDArray[Any] | None = None
         self.info: dict[str, Any] = {}
         self._state: NDArray[np.float64] | None = None
-        self._rows: list[dict[str, Any]] = []
+        self._record: _Record | None = None
 
     def reset(self, *, seed: int) -> dict[str, Any]:
         """Start an episode: plant, link, QoS policy, controller and estimator from ``seed``."""
@@ -94,7 +95,8 @@ class ClosedLoop:
         self.controller.reset(seed=seed)
         self.observation, self.info = obs, info
         self._state = self._estimate(obs, info, None)
-        self.t, self.done, self._rows = 0, False, []
+        self.t, self.done = 0, False
+        self._record = _Record() if self.recording else None
         return info
 
     def _estimate(
@@ -115,20 +117,14 @@ class ClosedLoop:
         info = self.info
         state = self._state
         action = np.asarray(self.controller.act(state), dtype=float)
-        row: dict[str, Any] | None = None
-        if self.recording:
-            row = {"t": self.t}
-            for k in _RECORDED:
-                row[k] = info[k]
+        head: list[Any] | None = None
+        if self._record is not None:
+            head = [info[k] for k in _RECORDED]
             error = state[self._remote] - info["remote_true"]
-            row["estimation_error"] = float(np.sqrt(np.dot(error, error)))
+            head.append(math.sqrt(error.dot(error)))  # the norm of the estimation error
         obs, reward, terminated, truncated, next_info = self.env.step(action)
-        if row is not None:
-            row["reward"] = float(reward)
-            for k, v in next_info.items():
-                if k not in row and k not in _RECORDED and _is_scalar(v):
-                    row[k] = v
-            self._rows.append(row)
+        if self._record is not None and head is not None:
+            self._record.append(self.t, head, float(reward), next_info)
         if self.observer is not None:
             self.observer(
                 Transition(
@@ -152,13 +148,58 @@ class ClosedLoop:
 
     def table(self) -> pd.DataFrame:
         """The per-step record: one row per control step (see :func:`rollout`)."""
-        return pd.DataFrame(self._rows)
+        return self._record.frame() if self._record is not None else pd.DataFrame([])
 
 
-def _is_scalar(value: Any) -> bool:
-    return isinstance(value, bool | int | float | np.number | np.bool_) or (
-        isinstance(value, np.ndarray) and value.ndim == 0
-    )
+_HEAD = ("t", *_RECORDED, "estimation_error", "reward")
+_SCALARS = (bool, int, float, np.bool_, np.float64, np.int64)
+"""Types whose values are recorded without asking ``np.ndim`` (0-d by construction)."""
+
+
+class _Record:
+    """The per-step rows of one episode, kept as columns (one DataFrame at the end).
+
+    A row is ``t``, the QoS columns, ``estimation_error``, ``reward`` and every scalar,
+    non-string ``info`` entry not among them. While every step has the same ``info`` columns
+    the values go straight into lists; otherwise the rows fall back to dicts, which pandas
+    aligns (a missing entry is NaN).
+    """
+
+    def __init__(self) -> None:
+        self.keys: tuple[str, ...] | None = None
+        self.columns: list[list[Any]] = []
+        self.rows: list[dict[str, Any]] | None = None
+
+    def append(self, t: int, head: list[Any], reward: float, info: dict[str, Any]) -> None:
+        keys = []
+        values: list[Any] = [t, *head, reward]
+        for k, v in info.items():
+            if k in _HEAD:
+                continue
+            if type(v) in _SCALARS or (np.ndim(v) == 0 and not isinstance(v, str)):
+                keys.append(k)
+                values.append(v)
+        if self.keys is None and self.rows is None:
+            self.keys = tuple(keys)
+            self.columns = [[] for _ in range(len(values))]
+        if self.rows is None and tuple(keys) != self.keys:
+            self.rows = self._as_rows()
+        if self.rows is not None:
+            self.rows.append(dict(zip((*_HEAD, *keys), values, strict=True)))
+            return
+        for column, value in zip(self.columns, values, strict=True):
+            column.append(value)
+
+    def _as_rows(self) -> list[dict[str, Any]]:
+        names = (*_HEAD, *(self.keys or ()))
+        return [dict(zip(names, row, strict=True)) for row in zip(*self.columns, strict=True)]
+
+    def frame(self) -> pd.DataFrame:
+        if self.rows is not None:
+            return pd.DataFrame(self.rows)
+        if self.keys is None:
+            return pd.DataFrame([])
+        return pd.DataFrame(dict(zip((*_HEAD, *self.keys), self.columns, strict=True)))
 
 
 def rollout(

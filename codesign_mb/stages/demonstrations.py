@@ -122,6 +122,8 @@ def add_demonstrations(
     demonstrations' success rate and number of transitions, and the noise-free
     ``(observations, actions)`` of the demonstrator (for behaviour cloning).
     """
+    if not isinstance(env.action_space, gym.spaces.Box):
+        raise TypeError("demonstrations need a Box action space")
     perfect = LinkObservationWrapper(env, BernoulliLink(), StaticQos(1.0, 0))
     noisy = NoisyController(
         controller,

@@ -22,6 +22,7 @@ from typing import Any
 
 import gymnasium as gym
 import numpy as np
+from stable_baselines3 import SAC
 from stable_baselines3.common.callbacks import BaseCallback, CallbackList
 
 from codesign_mb.adaptation.base import StaticQos
@@ -148,18 +149,16 @@ class StageAConfig:
     final_eval_episodes: int = 100
 
     def __post_init__(self) -> None:
-        require_at_least(self, 1, "total_steps", "chunk_steps", "final_eval_episodes")
+        require_at_least(self, 1, "total_steps", "chunk_steps")
         require_at_least(self, 0, "eval_episodes", "demo_episodes")
         if self.demo_episodes and self.demo is None:
             raise ValueError("demo_episodes > 0 needs a demo controller (demo.kind)")
         if not 0.0 <= self.demo_random_prob <= 1.0:
             raise ValueError(f"demo_random_prob must be in [0, 1], got {self.demo_random_prob}")
-        if self.demo_noise_std < 0:
-            raise ValueError(f"demo_noise_std must be >= 0, got {self.demo_noise_std}")
+        require_at_least(self, 0, "demo_noise_std")
         if any(v < 0 for v in self.curriculum):
             raise ValueError(f"curriculum belt speeds must be >= 0, got {self.curriculum}")
-        if self.shaping_weight < 0:
-            raise ValueError(f"shaping_weight must be >= 0, got {self.shaping_weight}")
+        require_at_least(self, 0, "shaping_weight")
         if self.grip_penalty < 0 or self.grip_radius_m <= 0:
             raise ValueError("grip_penalty must be >= 0 and grip_radius_m > 0")
         if self.bc_epochs < 0 or self.critic_warmup_steps < 0:
@@ -168,7 +167,195 @@ class StageAConfig:
             raise ValueError("bc_epochs / critic_warmup_steps need demo_episodes > 0")
         if self.actor_lr_scale <= 0:
             raise ValueError(f"actor_lr_scale must be > 0, got {self.actor_lr_scale}")
+        require_at_least(self, 1, "final_eval_episodes")
         if self.bc_action_std <= 0:
             raise ValueError(f"bc_action_std must be > 0, got {self.bc_action_std}")
 
 
+def evaluate_ideal(
+    plant: PlantSpec, controller: Controller, *, episodes: int, seed: int
+) -> dict[str, float]:
+    """Success rate and mean return of ``controller`` on the perfect state.
+
+    Each episode is :func:`~codesign_mb.rollout.rollout` with ideal control
+    (``estimator=None``: the controller sees the plant's observation) behind a perfect link
+    (``q = 1``, ``tau = 0``, which changes nothing the plant or the controller sees).
+    """
+    if not episodes:
+        return {}
+    env = LinkObservationWrapper(make_plant(plant), BernoulliLink(), StaticQos(1.0, 0))
+    successes, returns = [], []
+    for s in stage_seeds(seed, episodes):
+        table = rollout(env, None, controller, seed=s)
+        successes.append("success" in table and bool(table["success"].any()))
+        total = 0.0
+        for reward in table["reward"]:  # summed in step order, as SAC's episode return
+            total += float(reward)
+        returns.append(total)
+    env.close()
+    return {"success_rate": float(np.mean(successes)), "mean_return": float(np.mean(returns))}
+
+
+def train_stage_a(
+    config: StageAConfig,
+    *,
+    out_dir: str | Path,
+    work_dir: str | Path,
+    resume: bool = False,
+    progress: Progress = no_progress,
+    command: str | None = None,
+) -> dict[str, Any]:
+    """Train the ideal SAC controller; write the checkpoint to ``out_dir``.
+
+    Steps: build the (shaped, curriculum) training env; resume from ``work_dir`` or start a
+    new SAC, warm-started from demonstrations; train in chunks keeping the best evaluation;
+    evaluate the shipped model; write ``out_dir``. Returns the summary written to
+    ``out_dir/training.json`` (steps, wall time, evaluation).
+    """
+    work_dir = Path(work_dir)
+    launched = time.perf_counter()
+    schedule = curriculum_schedule(config.plant, config.curriculum, config.total_steps)
+    first = plant_at_speed(config.plant, schedule[0][1]) if schedule else config.plant
+    env = _shaped(config, SpeedSwitch(first))
+    state = load_state(work_dir) if resume else None
+    model = resume_sac(work_dir, env) if state is not None else None
+    if model is None:
+        model, state = _start(config, env, first, work_dir)
+    assert state is not None
+    state.total_steps = config.total_steps
+    scale_actor_learning_rate(model, config.actor_lr_scale)
+    if "setup_wall_time_s" not in state.extra:  # demonstrations, cloning, critic warm-up
+        state.extra["setup_wall_time_s"] = round(time.perf_counter() - launched, 1)
+    started = time.perf_counter()
+    _learn(config, model, state, work_dir=work_dir, schedule=schedule, progress=progress)
+    model = _shipped(config, model, work_dir)
+    final = evaluate_ideal(
+        config.plant,
+        SacController(model),
+        episodes=config.final_eval_episodes,
+        seed=config.seed + 3,
+    )
+    state.extra["session_wall_time_s"] = round(time.perf_counter() - started, 1)
+    write_output(
+        out_dir,
+        model=model,
+        state=state,
+        config=config,
+        command=command,
+        seed=config.seed,
+        final=final,
+        notes=_NOTES,
+    )
+    env.close()
+    return {"env_steps": state.steps_done, "wall_time_s": state.wall_time_s, **final}
+
+
+_NOTES = (
+    "SB3 SAC on the perfect state (no HER): plant reward + potential-based distance "
+    "shaping + early-grip penalty; actor initialised by behaviour cloning of the "
+    "demonstrations, critic pre-trained with SB3 SAC updates (actor frozen), then SAC; "
+    "the shipped model is the best evaluation (see 'best' and curve.json). "
+    "wall_time_s counts the SAC chunks; setup_wall_time_s the rest."
+)
+
+
+def _shaped(config: StageAConfig, env: gym.Env) -> gym.Env:
+    """``env`` with the distance shaping and the early-grip penalty (when either is on)."""
+    if not (config.shaping_weight or config.grip_penalty):
+        return env
+    return Shaping(
+        env, config.shaping_weight, config.sac.gamma, config.grip_penalty, config.grip_radius_m
+    )
+
+
+def _evaluate(config: StageAConfig, model: Any) -> dict[str, float]:
+    return evaluate_ideal(
+        config.plant, SacController(model), episodes=config.eval_episodes, seed=config.seed + 2
+    )
+
+
+def _start(
+    config: StageAConfig, env: gym.Env, first: PlantSpec, work_dir: Path
+) -> tuple[Any, TrainingState]:
+    """A new SAC and its state; with demonstrations, warm-started from them."""
+    state = TrainingState(stage="a", total_steps=config.total_steps)
+    (work_dir / "best_model.zip").unlink(missing_ok=True)
+    model = make_sac(env, config.sac, seed=config.seed)
+    if config.demo_episodes:
+        _warm_start(config, model, state, first, work_dir)
+    return model, state
+
+
+def _warm_start(
+    config: StageAConfig, model: Any, state: TrainingState, first: PlantSpec, work_dir: Path
+) -> None:
+    """Demonstrations into the replay buffer, behaviour cloning, critic warm-up, evaluation.
+
+    The evaluation before online learning is the curve's step 0 and the first best model.
+    """
+    assert config.demo is not None  # StageAConfig checks it
+    demo_env = _shaped(config, make_plant(first))
+    demo = build("controller", config.demo, demo_env)
+    stats, (demo_obs, demo_actions) = add_demonstrations(
+        model,
+        demo_env,
+        demo,
+        episodes=config.demo_episodes,
+        noise_std=config.demo_noise_std,
+        seed=config.seed + 1,
+        random_prob=config.demo_random_prob,
+    )
+    if config.bc_epochs:
+        stats["bc_loss"] = clone_behaviour(
+            model,
+            demo_obs,
+            demo_actions,
+            epochs=config.bc_epochs,
+            action_std=config.bc_action_std,
+            seed=config.seed + 4,
+        )
+    warm_up_critic(model, config.critic_warmup_steps)
+    stats["critic_warmup_steps"] = config.critic_warmup_steps
+    state.extra["demonstrations"] = stats
+    if config.eval_episodes:
+        start = {"steps": 0, **_evaluate(config, model)}
+        state.curve.append(start)
+        state.extra["best"] = {"steps": 0, "success_rate": start["success_rate"]}
+        work_dir.mkdir(parents=True, exist_ok=True)
+        model.save(work_dir / "best_model.zip", exclude=["_update_learning_rate"])
+
+
+def _learn(
+    config: StageAConfig,
+    model: Any,
+    state: TrainingState,
+    *,
+    work_dir: Path,
+    schedule: list[tuple[int, float]],
+    progress: Progress,
+) -> None:
+    """SAC in chunks with the curriculum and the actor freeze, keeping the best evaluation."""
+    callbacks: list[BaseCallback] = []
+    if schedule:
+        callbacks.append(Curriculum(schedule))
+    if config.actor_freeze_steps:
+        callbacks.append(FreezeActor(config.actor_freeze_steps))
+    train_sac_in_chunks(
+        model,
+        state,
+        work_dir=work_dir,
+        chunk_steps=config.chunk_steps,
+        evaluate=(lambda m: _evaluate(config, m)) if config.eval_episodes else None,
+        callback=CallbackList(callbacks) if callbacks else None,
+        progress=progress,
+        description="stage A (SAC, ideal control)",
+        keep_best="success_rate" if config.eval_episodes else None,
+    )
+
+
+def _shipped(config: StageAConfig, model: Any, work_dir: Path) -> Any:
+    """The model to ship: the best evaluated one when evaluations ran, else ``model``."""
+    best_path = work_dir / "best_model.zip"
+    if config.eval_episodes and best_path.is_file():
+        return SAC.load(best_path, device="cpu")
+    return model

@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import Any
 
 from codesign_mb.adaptation.learned import LearnedQosPolicy
+from codesign_mb.control.base import Controller
 from codesign_mb.core.config import to_mapping
 from codesign_mb.core.registry import (
     ComponentSpec,
@@ -32,20 +33,26 @@ from codesign_mb.core.registry import (
     resolve_checkpoint,
 )
 from codesign_mb.core.results import package_version
-from codesign_mb.estimation.learned import load_estimator
-from codesign_mb.stages.stage_b import (
+from codesign_mb.estimation.learned import LearnedEstimator, load_estimator
+from codesign_mb.stages.episodes import (
     DelayDistribution,
     EpisodeData,
-    EstimatorTraining,
     RandomQos,
-    _cached,
+    cached_episodes,
     collect_episodes,
     estimator_mse,
-    fit_estimator,
     position_slice,
 )
+from codesign_mb.stages.fitting import EstimatorTraining, fit_estimator
+from codesign_mb.stages.paths import portable_paths
 from codesign_mb.stages.stage_c import StageCConfig, train_stage_c
-from codesign_mb.stages.training import Progress, no_progress, seeded_torch, write_json
+from codesign_mb.stages.training import (
+    Progress,
+    no_progress,
+    require_at_least,
+    seeded_torch,
+    write_json,
+)
 
 __all__ = ["StageDConfig", "train_stage_d"]
 
@@ -107,11 +114,8 @@ class StageDConfig:
             )
         if not self.estimator.checkpoint:
             raise ValueError("stage D needs estimator.checkpoint (the stage-B estimator)")
-        for name in ("episodes", "val_episodes"):
-            if getattr(self, name) < 1:
-                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
-        if self.mix_episodes < 0:
-            raise ValueError(f"mix_episodes must be >= 0, got {self.mix_episodes}")
+        require_at_least(self, 1, "episodes", "val_episodes")
+        require_at_least(self, 0, "mix_episodes")
 
 
 def train_stage_d(
@@ -123,8 +127,12 @@ def train_stage_d(
     progress: Progress = no_progress,
     command: str | None = None,
 ) -> dict[str, Any]:
-    """Run the synthesis; write ``<kind>.pt``, ``qos/`` and ``training.json`` to ``out_dir``."""
+    """Run the synthesis; write ``<kind>.pt``, ``qos/`` and ``training.json`` to ``out_dir``.
 
+    Steps: check the stage-C policy's features; collect episodes under it (and from ``T``);
+    continue the estimator's fit; re-train the QoS policy for it (stage C, warm-started);
+    write ``training.json`` and ``curve.json``.
+    """
     out_dir, work_dir = Path(out_dir), Path(work_dir)
     work_dir.mkdir(parents=True, exist_ok=True)
     if not resume:
@@ -132,22 +140,94 @@ def train_stage_d(
             if old.suffix in (".npz", ".pt"):
                 old.unlink()
     started = time.perf_counter()
-    kind = config.estimator.kind
     probe = make_plant(config.plant)
-    controller = build("controller", config.controller, probe)
     qos_dir = resolve_checkpoint(config.qos_policy)
-    remote, position = probe.unwrapped.remote_slice, position_slice(probe)
-    # the warm start fixes the observation: the same extra features as the stage-C policy
+    saved = _stage_c_features(config, qos_dir)
+    # 1. the estimator under the learned QoS policy's deliveries
+    fit = _continue_estimator(
+        config, probe, qos_dir, out_dir=out_dir, work_dir=work_dir, resume=resume, progress=progress
+    )
+    estimator_s = time.perf_counter() - started
+    # 2. the QoS policy re-trained for the new estimator
+    qos_config = dataclasses.replace(
+        config.qos,
+        plant=config.plant,
+        controller=config.controller,
+        estimator=ComponentSpec(config.estimator.kind, str(fit.path)),
+        warm_start=str(qos_dir),
+        features=saved.get("kind"),
+        feature_options=dict(saved.get("options") or {}),
+    )
+    qos_result = train_stage_c(
+        qos_config,
+        out_dir=out_dir / "qos",
+        work_dir=work_dir / "qos",
+        resume=resume,
+        progress=progress,
+        command=command,
+        stage="d",
+    )
+    env_steps = int(sum(fit.steps.values()))
+    meta = {
+        "stage": "d",
+        "command": command,
+        "seed": config.seed,
+        "estimator": {
+            "env_steps": env_steps,
+            "env_steps_by_dataset": fit.steps,
+            "collection_wall_time_s": round(fit.collection_wall_time_s, 1),
+            "wall_time_s": round(estimator_s, 1),
+            "held_out_mse_under_learned_qos": {"before": fit.before, "after": fit.after},
+        },
+        "qos": qos_result,
+        "env_steps": env_steps + int(qos_result["env_steps"]),
+        "wall_time_s": round(time.perf_counter() - started, 1),
+        "package_version": package_version(),
+        "config": to_mapping(config),
+    }
+    write_json(out_dir / "training.json", portable_paths(meta, out_dir))
+    write_json(out_dir / "curve.json", {"estimator": fit.curve})
+    probe.close()
+    return {
+        "env_steps": meta["env_steps"],
+        "wall_time_s": meta["wall_time_s"],
+        "estimator_mse_before": fit.before["mse"],
+        "estimator_mse_after": fit.after["mse"],
+        **{k: v for k, v in qos_result.items() if k.startswith("eval_")},
+    }
+
+
+def _stage_c_features(config: StageDConfig, qos_dir: Path) -> dict[str, Any]:
+    """The stage-C policy's features (the warm start fixes the observation); checks ``qos``."""
     saved = LearnedQosPolicy.read_meta(qos_dir).get("features") or {}
     if config.qos.features is not None and config.qos.features != saved.get("kind"):
         raise ValueError(
             f"qos.features={config.qos.features!r} but the stage-C policy {qos_dir} was "
             f"trained with {saved.get('kind')!r}"
         )
+    return saved
 
-    # 1. the estimator under the learned QoS policy's deliveries
-    estimator_ckpt = work_dir / f"{kind}.pt"
-    estimator = load_estimator(resolve_checkpoint(config.estimator.checkpoint))
+
+@dataclass
+class _EstimatorFit:
+    """What step 1 produced: the saved estimator, its data, curve and held-out MSE."""
+
+    path: Path
+    steps: dict[str, int]
+    collection_wall_time_s: float
+    curve: list[dict[str, float]]
+    before: dict[str, float]
+    after: dict[str, float]
+
+
+def _collect(
+    config: StageDConfig, controller: Controller, qos_dir: Path, probe: Any, work_dir: Path
+) -> tuple[EpisodeData, EpisodeData, dict[str, int]]:
+    """Episodes under the learned QoS policy (fit, held out), plus ``mix_episodes`` from ``T``.
+
+    The controller acts on the stage-B estimator (the deployed loop); cached in ``work_dir``.
+    Returns the fitting data, the held-out data and the steps per dataset.
+    """
     qos_policy = LearnedQosPolicy.from_env(probe, qos_dir, deterministic=not config.sample_qos)
 
     def under_policy(name: str, episodes: int, seed: int) -> EpisodeData:
@@ -164,15 +244,14 @@ def train_stage_d(
                     behaviour=behaviour,
                 )
 
-        return _cached(work_dir / f"{name}.npz", make)
+        return cached_episodes(work_dir / f"{name}.npz", make)
 
-    t0 = time.perf_counter()
     train = under_policy("train_policy", config.episodes, config.seed + 30)
     val = under_policy("val_policy", config.val_episodes, config.seed + 40)
     steps = {"train_policy": train.steps, "val_policy": val.steps}
     data = EpisodeData().extend(train)
     if config.mix_episodes:
-        mix = _cached(
+        mix = cached_episodes(
             work_dir / "train_mix.npz",
             lambda: collect_episodes(
                 config.plant,
@@ -184,7 +263,28 @@ def train_stage_d(
         )
         steps["train_mix"] = mix.steps
         data.extend(mix)
-    collect_s = time.perf_counter() - t0
+    return data, val, steps
+
+
+def _continue_estimator(
+    config: StageDConfig,
+    probe: Any,
+    qos_dir: Path,
+    *,
+    out_dir: Path,
+    work_dir: Path,
+    resume: bool,
+    progress: Progress,
+) -> _EstimatorFit:
+    """Step 1: continue the stage-B estimator's fit on episodes under the learned QoS."""
+    kind = config.estimator.kind
+    controller = build("controller", config.controller, probe)
+    remote, position = probe.unwrapped.remote_slice, position_slice(probe)
+    estimator_ckpt = work_dir / f"{kind}.pt"
+    estimator: LearnedEstimator = load_estimator(resolve_checkpoint(config.estimator.checkpoint))
+    started = time.perf_counter()
+    data, val, steps = _collect(config, controller, qos_dir, probe, work_dir)
+    collect_s = time.perf_counter() - started
     before = estimator_mse(estimator, val, remote=remote, position=position)
     if resume and estimator_ckpt.is_file():
         estimator = load_estimator(estimator_ckpt)
@@ -203,52 +303,5 @@ def train_stage_d(
         estimator.save(estimator_ckpt)
     after = estimator_mse(estimator, val, remote=remote, position=position)
     out_dir.mkdir(parents=True, exist_ok=True)
-    estimator_path = estimator.save(out_dir / f"{kind}.pt")
-    estimator_s = time.perf_counter() - started
-
-    # 2. the QoS policy re-trained for the new estimator
-    qos_config = dataclasses.replace(
-        config.qos,
-        plant=config.plant,
-        controller=config.controller,
-        estimator=ComponentSpec(kind, str(estimator_path)),
-        warm_start=str(qos_dir),
-        features=saved.get("kind"),
-        feature_options=dict(saved.get("options") or {}),
-    )
-    qos_result = train_stage_c(
-        qos_config,
-        out_dir=out_dir / "qos",
-        work_dir=work_dir / "qos",
-        resume=resume,
-        progress=progress,
-        command=command,
-        stage="d",
-    )
-    meta = {
-        "stage": "d",
-        "command": command,
-        "seed": config.seed,
-        "estimator": {
-            "env_steps": int(sum(steps.values())),
-            "env_steps_by_dataset": steps,
-            "collection_wall_time_s": round(collect_s, 1),
-            "wall_time_s": round(estimator_s, 1),
-            "held_out_mse_under_learned_qos": {"before": before, "after": after},
-        },
-        "qos": qos_result,
-        "env_steps": int(sum(steps.values())) + int(qos_result["env_steps"]),
-        "wall_time_s": round(time.perf_counter() - started, 1),
-        "package_version": package_version(),
-        "config": to_mapping(config),
-    }
-    write_json(out_dir / "training.json", meta)
-    write_json(out_dir / "curve.json", {"estimator": curve})
-    probe.close()
-    return {
-        "env_steps": meta["env_steps"],
-        "wall_time_s": meta["wall_time_s"],
-        "estimator_mse_before": before["mse"],
-        "estimator_mse_after": after["mse"],
-        **{k: v for k, v in qos_result.items() if k.startswith("eval_")},
-    }
+    path = Path(estimator.save(out_dir / f"{kind}.pt"))
+    return _EstimatorFit(path, steps, collect_s, curve, before, after)

@@ -41,6 +41,8 @@ __all__ = [
     "make_sac",
     "no_progress",
     "require_at_least",
+    "resume_sac",
+    "seeded_torch",
     "stage_seeds",
     "train_sac_in_chunks",
     "write_json",
@@ -297,7 +299,8 @@ def write_output(
 ) -> Path:
     """Write the checkpoint folder: ``model.zip``, ``training.json``, ``curve.json``.
 
-    Checkpoint paths in ``training.json`` are portable (:func:`~codesign_mb.stages.paths.portable_paths`).
+    Checkpoint paths in ``training.json`` are made portable
+    (:func:`~codesign_mb.stages.paths.portable_paths`).
     """
 
     out_dir = Path(out_dir)
@@ -329,12 +332,3 @@ def seeded_torch(seed: int) -> Iterator[None]:
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(seed)
         yield
-
-
-def episode_success(infos: Iterable[Mapping[str, Any]]) -> bool:
-    """An episode succeeds when any step reports ``info["success"]`` (the object was lifted)."""
-    return any(bool(info.get("success", False)) for info in infos)
-
-
-def as_float_array(x: Any) -> np.ndarray:
-    return np.asarray(x, dtype=np.float64)

@@ -13,25 +13,34 @@ with its Wilson interval.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
 import pandas as pd
 
-from codesign_mb.core.results import atomic_write
+from codesign_mb.core.results import write_results
 from codesign_mb.evaluation.evaluate import (
     EvaluateConfig,
     rows_to_table,
     run_jobs,
     summarize,
 )
+from codesign_mb.studies.figures import (
+    Styler,
+    curve_label,
+    curves,
+    integer_ticks,
+    new_figure,
+    save_png,
+    varying,
+)
 
 _ESTIMATORS = ("predictor", "none")
 """Estimator kinds compared (no checkpoint needed)."""
 
-__all__ = ["FigCnConfig", "fig_cn_points", "plot_fig_cn", "run_fig_cn"]
+__all__ = ["FigCnConfig", "fig_cn_points", "plot_fig_cn", "run_fig_cn", "run_fig_cn_study"]
 
 Progress = Callable[[Iterable[Any], int], Iterable[Any]]
 
@@ -148,7 +157,8 @@ def run_fig_cn(config: FigCnConfig, *, progress: Progress | None = None) -> pd.D
     Columns: ``sweep`` (``"delay"`` or ``"reliability"``), ``belt_speed_mps``, ``estimator``,
     ``latency_steps``, ``reliability``, then :func:`~codesign_mb.evaluation.evaluate.summarize`'s
     (``trials``, ``successes``, ``success_rate``, ``success_ci_low``, ``success_ci_high``,
-    ``mean_age``, ``delivered_fraction``, ...).
+    ``mean_age``, ``delivered_fraction``, ..., and with an MPC ``mpc_failures``: its failed
+    solves summed over the point's episodes).
     """
     points = fig_cn_points(config)
     jobs = []
@@ -178,57 +188,80 @@ def run_fig_cn(config: FigCnConfig, *, progress: Progress | None = None) -> pd.D
     return pd.DataFrame(records)
 
 
-def plot_fig_cn(table: pd.DataFrame, path: str | Path) -> Path:
-    """Plot the figure (PNG): rows = sweeps (delay, reliability), columns = belt speeds."""
-    import matplotlib
+def run_fig_cn_study(
+    config: FigCnConfig, out_dir: str | Path, *, progress: Progress | None = None
+) -> tuple[pd.DataFrame, dict[str, Path]]:
+    """Run Fig. 4 (:func:`run_fig_cn`) and write it into ``out_dir``.
 
-    matplotlib.use("Agg", force=False)
-    import matplotlib.pyplot as plt
+    Writes ``fig_cn.{parquet,csv,json}`` (one row per point) and ``fig_cn.png``
+    (:func:`plot_fig_cn`); returns the table and the files (``parquet``, ``csv``, ``json``,
+    ``png``).
+    """
+    table = run_fig_cn(config, progress=progress)
+    files = dict(write_results(out_dir, table=table, config=config, name="fig_cn"))
+    files["png"] = plot_fig_cn(table, Path(out_dir) / "fig_cn.png")
+    return table, files
 
-    path = Path(path)
+
+def plot_fig_cn(
+    table: pd.DataFrame,
+    path: str | Path,
+    *,
+    labels: Sequence[str] = ("estimator",),
+    dpi: int = 130,
+) -> Path:
+    """Fig. 4 (PNG): success rate with its interval; rows = sweeps, columns = belt speeds.
+
+    ``table`` has one row per point: ``success_rate``, ``success_ci_low``,
+    ``success_ci_high`` and the x value, ``latency_steps`` (delay sweep) or ``reliability``
+    (rows whose ``sweep`` is ``"reliability"``; any other ``sweep``, or none, is the delay
+    sweep); optional ``belt_speed_mps`` (one column of panels each; absent: one untitled
+    panel). One curve per value of the ``labels`` present (colour; a ``pipeline`` label sets
+    the line style: learned solid, model-based dashed). :func:`run_fig_cn`'s table fits, and
+    ``codesign report`` draws any ``fig_cn`` table with this function.
+    """
+    sweep = table["sweep"].astype(str) if "sweep" in table else pd.Series("", index=table.index)
+    table = table.assign(sweep=sweep.where(sweep == "reliability", "delay"))
+    if "belt_speed_mps" not in table:
+        table = table.assign(belt_speed_mps=-1.0)  # one panel, no title
+    labels = [c for c in labels if c in table.columns]
     speeds = sorted(table["belt_speed_mps"].unique())
     sweeps = [s for s in ("delay", "reliability") if s in set(table["sweep"])]
-    fig, axes = plt.subplots(
-        len(sweeps), len(speeds), figsize=(4.2 * len(speeds), 3.2 * len(sweeps)), squeeze=False
-    )
-    styles = {"predictor": ("C0", "o", "MPC + predictor"), "none": ("C3", "s", "MPC, no estimator")}
-    try:
-        for r, sweep in enumerate(sweeps):
-            for c, speed in enumerate(speeds):
-                ax = axes[r][c]
-                part = table[(table["sweep"] == sweep) & (table["belt_speed_mps"] == speed)]
-                xcol = "latency_steps" if sweep == "delay" else "reliability"
-                for est, group in part.groupby("estimator", sort=False):
-                    group = group.sort_values(xcol)
-                    color, marker, label = styles.get(str(est), ("C2", "^", str(est)))
-                    x = group[xcol].to_numpy()
-                    ax.plot(x, group["success_rate"], marker=marker, color=color, label=label)
-                    ax.fill_between(
-                        x,
-                        group["success_ci_low"],
-                        group["success_ci_high"],
-                        color=color,
-                        alpha=0.15,
-                        linewidth=0,
-                    )
-                if sweep == "delay":
-                    ax.set_xlabel("fixed delay [steps of 40 ms]")
-                else:
-                    ax.set_xscale("log")
-                    taus = sorted(set(part["latency_steps"]))
-                    ax.set_xlabel(f"reliability q (i.i.d., tau = {', '.join(map(str, taus))})")
-                    ticks = sorted(set(part[xcol]))
-                    ax.set_xticks(ticks, [f"{q:g}" for q in ticks])
-                    ax.minorticks_off()
-                    ax.invert_xaxis()
-                ax.set_ylim(-0.02, 1.02)
-                ax.set_ylabel("success rate")
-                ax.set_title(f"belt {speed:g} m/s")
-                ax.grid(True, alpha=0.3)
-                ax.legend(loc="lower left", fontsize="small")
-        fig.tight_layout()
-        with atomic_write(path, "wb") as fh:
-            fig.savefig(fh, format="png", dpi=130)
-    finally:
-        plt.close(fig)
-    return path
+    fig, axes = new_figure(len(sweeps), len(speeds), width=4.2, height=3.2)
+    styler = Styler(labels)
+    shown = varying(table, labels) if labels else []
+    for r, name in enumerate(sweeps):
+        xcol = "latency_steps" if name == "delay" else "reliability"
+        for c, speed in enumerate(speeds):
+            ax = axes[r, c]
+            part = table[(table["sweep"] == name) & (table["belt_speed_mps"] == speed)]
+            for key, group in curves(part, labels):
+                group = group.sort_values(xcol)
+                colour, style = styler(key)
+                x = group[xcol].to_numpy(float)
+                label = curve_label(key, shown)
+                ax.plot(x, group["success_rate"], style, marker="o", color=colour, label=label)
+                low, high = group["success_ci_low"], group["success_ci_high"]
+                ax.fill_between(x, low, high, color=colour, alpha=0.15, linewidth=0)
+            _axes(ax, name, part, speed)
+    return save_png(fig, path, dpi=dpi)
+
+
+def _axes(ax: Any, sweep: str, part: pd.DataFrame, speed: float) -> None:
+    if sweep == "delay":
+        integer_ticks(ax)
+        ax.set_xlabel("fixed delay tau [steps of 40 ms]")
+    else:
+        ax.set_xscale("log")
+        taus = sorted(set(part["latency_steps"])) if "latency_steps" in part else []
+        fixed = f", tau = {', '.join(f'{t:g}' for t in taus)}" if taus else ""
+        ax.set_xlabel(f"reliability q (i.i.d.{fixed})")
+        ticks = sorted(set(part["reliability"]))
+        ax.set_xticks(ticks, [f"{q:g}" for q in ticks])
+        ax.minorticks_off()
+        ax.invert_xaxis()
+    ax.set_ylim(-0.02, 1.02)
+    ax.set_ylabel("success rate")
+    ax.set_title(f"belt {speed:g} m/s" if speed >= 0 else "")
+    ax.grid(True, alpha=0.3)
+    ax.legend(loc="lower left", fontsize="small")

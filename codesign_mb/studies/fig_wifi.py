@@ -36,6 +36,9 @@ its state frame's DL exchange about 0.4 ms more, so about 6 robots at ``q = 1`` 
 ms period (the greedy scheduler delivers every frame to 6 robots, 80 % to 7, 15 % to 8);
 ``"better"`` uses link adaptation (MCS 0-11 for ``q0 = 0.95``,
 0.8 us guard interval) with robots 5-20 m from the AP and 24 Mb/s control frames.
+
+The figure and the files of ``codesign wifi capacity`` are in
+:mod:`codesign_mb.studies.fig_wifi_figures`.
 """
 
 from __future__ import annotations
@@ -52,15 +55,16 @@ import pandas as pd
 from codesign_mb.adaptation.rules import AgeTriggeredQos
 from codesign_mb.core.config import from_mapping
 from codesign_mb.core.registry import ComponentSpec, PlantSpec, build, make_plant
-from codesign_mb.core.results import atomic_write
 from codesign_mb.evaluation import pool
 from codesign_mb.network.wrapper import LinkObservationWrapper
 from codesign_mb.rollout import rollout_shared
 from codesign_mb.rollout.compose import covariance_rule
-from codesign_mb.wifi.cell import SharedChannel
+from codesign_mb.wifi.cell import SharedChannel, generate_trace
 from codesign_mb.wifi.channel import ChannelConfig
 from codesign_mb.wifi.config import SCHEDULERS, WifiConfig
-from codesign_mb.wifi.phy import MacTiming, PhyConfig
+from codesign_mb.wifi.mac import MacTiming
+from codesign_mb.wifi.phy import PhyConfig
+from codesign_mb.wifi.sim import Trace
 
 __all__ = [
     "CHANNEL_PRESETS",
@@ -71,9 +75,9 @@ __all__ = [
     "PipelineConfig",
     "capacity_table",
     "describe_channel",
-    "plot_capacity",
     "run_capacity",
     "run_point",
+    "write_trace",
 ]
 
 
@@ -305,7 +309,10 @@ def run_point(
     n_robots: int,
     trial: int,
 ) -> dict[str, Any]:
-    """One trial of one point: N robots, one episode; returns success and network figures."""
+    """One trial of one point: N robots, one episode; returns success and network figures.
+
+    With an MPC, ``mpc_failures`` is its failed solves summed over the N robots.
+    """
 
     pipeline = config.pipelines[pipeline_name]
     channel = SharedChannel(CHANNEL_PRESETS[channel_name], n_robots, scheduler=scheduler)
@@ -325,7 +332,7 @@ def run_point(
     successes = [bool(t["success"].any()) if "success" in t else False for t in tables]
     summary = channel.summary()
     ages = [float(t["age"].mean()) for t in tables if len(t)]
-    return {
+    row = {
         "channel": channel_name,
         "scheduler": scheduler,
         "pipeline": pipeline_name,
@@ -340,6 +347,17 @@ def run_point(
         if summary["delivered"].sum()
         else float("nan"),
     }
+    failures = [
+        m["mpc_failures"] for m in map(_episode_metrics, controllers) if "mpc_failures" in m
+    ]
+    if failures:  # an MPC: its failed solves, summed over the robots
+        row["mpc_failures"] = int(sum(failures))
+    return row
+
+
+def _episode_metrics(component: Any) -> dict[str, Any]:
+    metrics = getattr(component, "episode_metrics", None)
+    return dict(metrics()) if callable(metrics) else {}
 
 
 def _run_point_kwargs(args: tuple[CapacityConfig, dict[str, Any]]) -> dict[str, Any]:
@@ -383,87 +401,69 @@ def capacity_table(results: pd.DataFrame, *, success_target: float = 0.95) -> pd
     """Per curve: mean success per robot count and the capacity.
 
     A curve's capacity is the largest robot count up to which every simulated count reaches
-    ``success_target`` (0 if the smallest does not).
+    ``success_target`` (0 if the smallest does not). ``mean_reliability`` and
+    ``delivered_fraction`` are NaN when ``results`` has no such column; ``mpc_failures`` (the
+    trials' sum) is there when ``results`` has it.
     """
+    keys = ["channel", "scheduler", "pipeline", "robots"]
+    results = results.assign(
+        **{c: math.nan for c in ("mean_reliability", "delivered_fraction") if c not in results}
+    )
+    sums = {"mpc_failures": ("mpc_failures", _sum_or_nan)} if "mpc_failures" in results else {}
     curves = (
-        results.groupby(["channel", "scheduler", "pipeline", "robots"], as_index=False)
+        results.groupby(keys, as_index=False)
         .agg(
             success_rate=("success_rate", "mean"),
             mean_reliability=("mean_reliability", "mean"),
             delivered_fraction=("delivered_fraction", "mean"),
             trials=("success_rate", "size"),
+            **sums,  # type: ignore[arg-type]
         )
-        .sort_values(["channel", "scheduler", "pipeline", "robots"])
+        .sort_values(keys)
     )
     caps = []
-    for key, group in curves.groupby(["channel", "scheduler", "pipeline"]):
+    for key, group in curves.groupby(keys[:3]):
         capacity = 0
         for n, rate in zip(group["robots"], group["success_rate"], strict=True):
             if rate < success_target - 1e-12:
                 break
             capacity = int(n)
         caps.append((*key, capacity))
-    cap = pd.DataFrame(caps, columns=["channel", "scheduler", "pipeline", "capacity_robots"])
-    return curves.merge(cap, on=["channel", "scheduler", "pipeline"])
+    cap = pd.DataFrame(caps, columns=[*keys[:3], "capacity_robots"])
+    return curves.merge(cap, on=keys[:3])
 
 
-def plot_capacity(results: pd.DataFrame, path: str | Path, *, success_target: float = 0.95) -> Path:
-    """Fig. 6 as a PNG: per channel, success (top) and requested reliability (bottom) vs N.
+def _sum_or_nan(values: pd.Series) -> float:
+    return float(values.sum(min_count=1))
 
-    One colour per pipeline (static QoS, co-design), one line style per scheduler (greedy
-    solid, convex dashed); the band is the spread of the trials' success rates (min-max).
+
+def write_trace(
+    out: str | Path,
+    *,
+    channel: str = "paper",
+    robots: int = 6,
+    steps: int = 10,
+    reliability: float = 1.0,
+    latency_steps: int = 1,
+    seed: int = 0,
+) -> Trace:
+    """Record a static-QoS traffic trace on a :data:`CHANNEL_PRESETS` cell and save it (JSON).
+
+    The instance is what ``codesign solve`` and the allocation LP read.
     """
-    import matplotlib
-
-    matplotlib.use("Agg", force=False)
-    import matplotlib.pyplot as plt
-
-    path = Path(path)
-    channels = list(dict.fromkeys(results["channel"]))
-    curves = capacity_table(results, success_target=success_target)
-    spread = results.groupby(["channel", "scheduler", "pipeline", "robots"])["success_rate"].agg(
-        ["min", "max"]
+    if channel not in CHANNEL_PRESETS:
+        raise ValueError(f"channel must be one of {sorted(CHANNEL_PRESETS)}, got {channel!r}")
+    if steps < 1 or robots < 1:
+        raise ValueError(f"steps and robots must be >= 1, got {steps} and {robots}")
+    trace = generate_trace(
+        CHANNEL_PRESETS[channel],
+        robots,
+        steps=steps,
+        reliability=reliability,
+        latency_steps=latency_steps,
+        seed=seed,
     )
-    pipelines = list(dict.fromkeys(results["pipeline"]))
-    colours = {p: f"C{i}" for i, p in enumerate(pipelines)}
-    styles = {"greedy": ("-", "o"), "convex": ("--", "s"), "convex-cvxpy": (":", "^")}
-    fig, axes = plt.subplots(
-        2, len(channels), figsize=(4.8 * len(channels), 6.4), squeeze=False, sharex="col"
-    )
-    try:
-        for c, channel in enumerate(channels):
-            top, bottom = axes[0][c], axes[1][c]
-            part = curves[curves["channel"] == channel]
-            for (scheduler, pipeline), line in part.groupby(["scheduler", "pipeline"], sort=False):
-                line = line.sort_values("robots")
-                style, marker = styles.get(str(scheduler), ("-.", "x"))
-                colour = colours[pipeline]
-                cap = int(line["capacity_robots"].iloc[0])
-                largest = int(line["robots"].max())
-                reach = f">= {cap} robots" if cap == largest else f"{cap} robots" if cap else "none"
-                label = f"{pipeline}, {scheduler} (at {success_target:.0%}: {reach})"
-                x = line["robots"].to_numpy()
-                top.plot(x, line["success_rate"], style, marker=marker, color=colour, label=label)
-                band = spread.loc[(channel, scheduler, pipeline)].reindex(x)
-                top.fill_between(x, band["min"], band["max"], color=colour, alpha=0.08, lw=0)
-                bottom.plot(
-                    x, line["mean_reliability"], style, marker=marker, color=colour, label=label
-                )
-                bottom.plot(x, line["delivered_fraction"], ":", color=colour, alpha=0.6)
-            top.axhline(success_target, color="0.5", lw=0.8, ls=":")
-            top.set_ylim(-0.02, 1.05)
-            top.set_ylabel("task success rate")
-            top.set_title(f"{channel}: {describe_channel(channel)}", fontsize=8)
-            top.grid(alpha=0.3)
-            top.legend(fontsize=7, loc="lower left")
-            bottom.set_ylim(-0.02, 1.05)
-            bottom.set_ylabel("requested q (solid/dashed), delivered (dotted)", fontsize=8)
-            bottom.set_xlabel("robots sharing the channel")
-            bottom.grid(alpha=0.3)
-        fig.suptitle("Task success vs robots on one WiFi 6 channel (fig_wifi)", fontsize=10)
-        fig.tight_layout()
-        with atomic_write(path, "wb") as fh:
-            fig.savefig(fh, format="png", dpi=130)
-    finally:
-        plt.close(fig)
-    return path
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    trace.save(out)
+    return trace

@@ -33,8 +33,10 @@ def solve_instance(path: str | Path, *, solver: str = "highs", compare: bool = F
     }
     if compare:
         for name in ("greedy", "convex"):
-            delivered = replay(trace, name).delivered
+            replayed = replay(trace, name)
+            delivered = replayed.delivered
             record[f"{name}_frames"] = delivered
+            record[f"{name}_solver_fallbacks"] = replayed.fallbacks.total
             record[f"{name}_gap"] = (
                 (result.optimum - delivered) / result.optimum if result.optimum > 0 else 0.0
             )

@@ -44,10 +44,12 @@ Built in: ``"linear"`` (:mod:`codesign_mb.studies.sweep_linear`, LQG over a Bern
 link, milliseconds per trial) and ``"conveyor"`` (:mod:`codesign_mb.studies.sweep_conveyor`: the
 MuJoCo pick-and-place with the pipelines of ``codesign table``, seconds per trial).
 
-Ray Tune
---------
-:func:`tune_hyperparameters` runs a training-hyperparameter search with Ray Tune around any
-``trainable(config: dict) -> dict`` (e.g. a training stage of :mod:`codesign_mb.stages`).
+Ray
+---
+The Ray backend and :func:`~codesign_mb.studies.sweep_ray.tune_hyperparameters` (a
+training-hyperparameter search with Ray Tune) are in :mod:`codesign_mb.studies.sweep_ray`.
+
+The figure of a sweep is :func:`codesign_mb.studies.sweep_figures.plot_sweep`.
 """
 
 from __future__ import annotations
@@ -70,6 +72,7 @@ from codesign_mb.core.config import from_mapping, to_mapping
 from codesign_mb.core.results import atomic_write, to_jsonable, write_results
 from codesign_mb.core.seeds import episode_seeds
 from codesign_mb.evaluation import pool
+from codesign_mb.studies.sweep_ray import iter_ray
 
 __all__ = [
     "GRID_COLUMNS",
@@ -81,7 +84,7 @@ __all__ = [
     "execute_trial",
     "plan_sweep",
     "run_sweep",
-    "tune_hyperparameters",
+    "stored_trials",
 ]
 
 Backend = Literal["serial", "local", "ray"]
@@ -363,38 +366,6 @@ def _iter_local(pending: Pending, workers: int) -> Iterator[tuple[str, dict[str,
         yield pending[i][0], row
 
 
-def _iter_ray(
-    pending: Pending, workers: int | None, address: str | None
-) -> Iterator[tuple[str, dict[str, Scalar]]]:
-    try:
-        import ray
-    except ModuleNotFoundError:
-        raise ValueError("the ray backend needs Ray: pip install 'codesign_mb[ray]'") from None
-    owns = False
-    if not ray.is_initialized():
-        if address:
-            ray.init(address=address, log_to_driver=False)
-        else:
-            ray.init(num_cpus=workers, include_dashboard=False, log_to_driver=False)
-        owns = True
-    elif address:
-        # Already connected (e.g. inside a Ray job or a test fixture): use that cluster.
-        pass
-    remote = ray.remote(num_cpus=1)(execute_trial)
-    refs = {remote.remote(trial, seed): key for key, trial, seed in pending}
-    try:
-        remaining = list(refs)
-        while remaining:
-            done, remaining = ray.wait(remaining, num_returns=1)
-            for ref in done:
-                yield refs[ref], ray.get(ref)
-    finally:
-        for ref in refs:
-            ray.cancel(ref, force=False)
-        if owns:
-            ray.shutdown()
-
-
 @dataclass(frozen=True)
 class SweepResult:
     """What :func:`run_sweep` did: the table, where it went, computed vs. reused trials."""
@@ -469,7 +440,7 @@ def run_sweep(
     elif backend == "local":
         stream = _iter_local(pending, n_workers)
     else:
-        stream = _iter_ray(pending, n_workers, address)
+        stream = iter_ray(execute_trial, pending, n_workers, address)
     by_key = {key: (trial, seed) for key, trial, seed in pending}
     iterable = progress(stream, len(pending)) if progress is not None else stream
     for key, row in iterable:
@@ -499,132 +470,7 @@ def run_sweep(
     )
 
 
-# --------------------------------------------------------------------------- Ray Tune
-
-
-def tune_hyperparameters(
-    trainable: Callable[[dict[str, Any]], Mapping[str, Any]],
-    param_space: Mapping[str, Any],
-    *,
-    metric: str,
-    mode: Literal["min", "max"],
-    num_samples: int = 1,
-    seed: int = 0,
-    address: str | None = None,
-    max_concurrent_trials: int | None = None,
-    storage_path: str | Path | None = None,
-    name: str = "tune",
-    cpus_per_trial: float = 1.0,
-) -> pd.DataFrame:
-    """A hyperparameter search with Ray Tune around a plain ``trainable(config) -> metrics``.
-
-    Parameters
-    ----------
-    trainable:
-        A picklable function of one config dict (e.g. a training stage of
-        :mod:`codesign_mb.stages` with its hyperparameters and ``"seed"``) returning its final
-        metrics. It is wrapped so it reports them to Tune once; it need not know about Ray.
-    param_space:
-        Tune search space (``tune.grid_search``, ``tune.choice``, ``tune.loguniform``, plain
-        values). A ``"seed"`` entry is added (the trial's sample seed) unless present.
-    metric, mode:
-        The metric of ``trainable``'s result to optimise, ``"min"`` or ``"max"``.
-    num_samples:
-        Samples of the space (each grid point is repeated ``num_samples`` times).
-    seed:
-        Seeds the variant generator, so the sampled configs are reproducible.
-    address:
-        Ray cluster address; ``None`` uses the running Ray instance or starts a local one.
-    max_concurrent_trials, cpus_per_trial:
-        Parallelism limits.
-    storage_path, name:
-        Where Tune keeps its experiment folder (default: a temporary folder).
-
-    Returns
-    -------
-    pandas.DataFrame
-        One row per trial: ``config/<key>`` columns and the reported metrics, sorted by
-        ``metric`` (best first).
-    """
-    import tempfile
-
-    import ray
-    from ray import tune
-    from ray.tune.search.basic_variant import BasicVariantGenerator
-
-    if mode not in ("min", "max"):
-        raise ValueError(f"mode must be 'min' or 'max', got {mode!r}")
-    _require_int("num_samples", num_samples, minimum=1)
-    owns = False
-    if not ray.is_initialized():
-        if address:
-            ray.init(address=address, log_to_driver=False)
-        else:
-            ray.init(include_dashboard=False, log_to_driver=False)
-        owns = True
-    space = dict(param_space)
-    space.setdefault("seed", tune.randint(0, 2**31 - 1))
-    try:
-        tuner = tune.Tuner(
-            tune.with_resources(_TuneReporter(trainable), {"cpu": cpus_per_trial}),
-            param_space=space,
-            tune_config=tune.TuneConfig(
-                metric=metric,
-                mode=mode,
-                num_samples=num_samples,
-                max_concurrent_trials=max_concurrent_trials,
-                search_alg=BasicVariantGenerator(random_state=seed),
-            ),
-            run_config=tune.RunConfig(
-                name=name,
-                storage_path=str(storage_path or tempfile.mkdtemp(prefix="codesign-tune-")),
-                verbose=0,
-            ),
-        )
-        grid = tuner.fit()
-        frame = grid.get_dataframe()
-    finally:
-        if owns:
-            ray.shutdown()
-    keep = [c for c in frame.columns if c.startswith("config/")]
-    keep += [c for c in frame.columns if c not in keep and not _is_tune_bookkeeping(c)]
-    frame = frame[keep].sort_values(metric, ascending=(mode == "min"), kind="stable")
-    return frame.reset_index(drop=True)
-
-
-_TUNE_BOOKKEEPING = {
-    "timestamp",
-    "checkpoint_dir_name",
-    "done",
-    "training_iteration",
-    "trial_id",
-    "date",
-    "time_this_iter_s",
-    "time_total_s",
-    "pid",
-    "hostname",
-    "node_ip",
-    "time_since_restore",
-    "iterations_since_restore",
-    "logdir",
-}
-
-
-def _is_tune_bookkeeping(column: str) -> bool:
-    return column in _TUNE_BOOKKEEPING
-
-
-class _TuneReporter:
-    """Picklable wrapper reporting ``trainable(config)``'s metrics to Tune (function API)."""
-
-    def __init__(self, trainable: Callable[[dict[str, Any]], Mapping[str, Any]]) -> None:
-        self.trainable = trainable
-        self.__name__ = getattr(trainable, "__name__", "trainable")
-
-    def __call__(self, config: dict[str, Any]) -> None:
-        from ray import tune
-
-        metrics = self.trainable(dict(config))
-        if not isinstance(metrics, Mapping):
-            raise TypeError(f"trainable must return a dict, got {type(metrics).__name__}")
-        tune.report(dict(to_jsonable(dict(metrics))))
+def stored_trials(out_dir: str | Path, name: str) -> tuple[int, Path]:
+    """How many finished trials of the sweep ``name`` are kept under ``out_dir``, and where."""
+    store = TrialStore(Path(out_dir) / ".trials" / name)
+    return len(store.keys()), store.root

@@ -2,7 +2,7 @@
 
 One trial (``codesign sweep --scenario conveyor``) runs ``Params.episodes`` seeded episodes of
 :class:`~codesign_mb.plants.conveyor.ConveyorPickPlace` at the grid's belt speed, with one
-pipeline: a ``{controller, estimator, qos}`` row of :mod:`codesign_mb.studies.table`, so the
+pipeline: a ``{controller, estimator, qos}`` row of :mod:`codesign_mb.studies.table_rows`, so the
 components (options, checkpoints) are exactly those of ``codesign table``. A sweep pipeline
 names its row by component kinds (:data:`PIPELINE_KINDS`), looked up in ``model_free_rows()``,
 ``model_based_rows()`` and ``all_rows()`` (row names change, kinds do not); :data:`PIPELINES`
@@ -61,7 +61,7 @@ from codesign_mb.network.link import BernoulliLink, Reception
 from codesign_mb.network.qos import QosRequest
 from codesign_mb.plants.conveyor import ConveyorConfig
 from codesign_mb.studies.fig_wifi import CHANNEL_PRESETS, CapacityConfig, PipelineConfig, run_point
-from codesign_mb.studies.table import all_rows, model_based_rows, model_free_rows
+from codesign_mb.studies.table_rows import all_rows, model_based_rows, model_free_rows
 from codesign_mb.wifi.config import SCHEDULERS
 
 __all__ = [
@@ -92,7 +92,7 @@ PIPELINE_KINDS: dict[str, tuple[str, str, str]] = {
     "mpc-mlp-rule": ("mpc", "mlp", "rule"),
 }
 """Sweep pipeline name -> ``(controller, estimator, qos)`` kinds of its table row.
-``model-based-rule`` is the covariance rule at ``table.MPC_RULE_THRESHOLD_M``;
+``model-based-rule`` is the covariance rule at ``table_rows.MPC_RULE_THRESHOLD_M``;
 ``model-free-codesign`` is SAC (stage A) + MLP + the learned QoS policy (stage D)."""
 
 
@@ -243,7 +243,7 @@ class SharedBernoulliLink:
 
 
 def pipeline_row(pipeline: str) -> Any:
-    """The :class:`~codesign_mb.studies.table.TableRow` of a sweep pipeline name.
+    """The :class:`~codesign_mb.studies.table_rows.TableRow` of a sweep pipeline name.
 
     The first table row with the pipeline's kinds (rows with the same kinds have the same
     components: the tests check it).

@@ -192,12 +192,24 @@ class OsqpQp:
         x, status_val, status = self._run()
         if status_val not in self._usable:
             self.last_status = f"osqp status {status!r}"
-            return None
-        if x.shape != (self.nv,) or not math.isfinite(float(x.sum())):
+        elif x.shape != (self.nv,) or not math.isfinite(float(x.sum())):
             self.last_status = f"osqp returned a non-finite solution (status {status!r})"
-            return None
-        self.last_status = str(status)
-        return x
+        else:
+            self.last_status = status
+            return x
+        self._restart()
+        return None
+
+    def _restart(self) -> None:
+        """Forget the warm start and the adapted ``rho`` after a failed solve: a non-finite
+        iterate would otherwise seed every later solve of this workspace."""
+        x0, y0 = np.zeros(self.nv), np.zeros(self.n_rows + self.nv)
+        if self._raw is None:  # pragma: no cover - osqp builds without the extension object
+            self.solver.warm_start(x=x0, y=y0)
+            self.solver.update_settings(rho=OSQP_SETTINGS["rho"])
+            return
+        self._raw.warm_start(x0, y0)
+        self._raw.update_rho(OSQP_SETTINGS["rho"])
 
 
 class CvxpyQp:
@@ -239,6 +251,7 @@ class CvxpyQp:
         self.problem = cp.Problem(objective, constraints)
         if not self.problem.is_dpp():
             raise AssertionError("eq_qp must be DPP")
+        self._warm_start = True  # off for the solve after a failure
         self._variables = (x, t, z)
         self._parameters = (a, b, t_max, z_max, active)
         self.last_status = "unsolved"
@@ -248,13 +261,23 @@ class CvxpyQp:
     ) -> NDArray[np.float64] | None:
         """``v = [x, t, z]`` for the parameter ``values`` ``(a, b, T, Z, active)``, or ``None``
         when the solver failed (``last_status`` says how)."""
-        import cvxpy as cp
-
         for param, value in zip(self._parameters, values, strict=True):
             param.value = value
         kwargs = {"eps_abs": eps, "eps_rel": eps} if solver == "OSQP" else {}
+        v = self._solve(solver, kwargs)
+        if v is None:
+            self._warm_start = False
+            return None
+        self.last_status = str(self.problem.status)
+        self._warm_start = True
+        return v
+
+    def _solve(self, solver: str, kwargs: dict[str, float]) -> NDArray[np.float64] | None:
+        """One solve: ``v``, or ``None`` with the reason in ``last_status``."""
+        import cvxpy as cp
+
         try:
-            self.problem.solve(solver=solver, warm_start=True, **kwargs)
+            self.problem.solve(solver=solver, warm_start=self._warm_start, **kwargs)
         except cp.error.SolverError as exc:
             self.last_status = f"cvxpy {solver} raised SolverError: {exc}"
             return None
@@ -262,10 +285,12 @@ class CvxpyQp:
         if status not in _CVXPY_USABLE:
             self.last_status = f"cvxpy {solver} status {status!r}"
             return None
-        x, t, z = (np.asarray(var.value, dtype=float) for var in self._variables)
-        v = np.concatenate([x.ravel(), t, z])
-        if v.shape != (self.n * self.k + 2 * self.n,) or not np.all(np.isfinite(v)):
-            self.last_status = f"cvxpy {solver} returned a non-finite solution (status {status!r})"
+        parts = [var.value for var in self._variables]
+        if any(part is None for part in parts):
+            self.last_status = f"cvxpy {solver} returned no solution ({status!r})"
             return None
-        self.last_status = status
+        v = np.concatenate([np.asarray(part, dtype=float).ravel() for part in parts])
+        if v.shape != (self.n * self.k + 2 * self.n,) or not np.all(np.isfinite(v)):
+            self.last_status = f"cvxpy {solver} returned a non-finite solution ({status!r})"
+            return None
         return v

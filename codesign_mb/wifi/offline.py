@@ -96,115 +96,153 @@ class OfflineResult:
     n_frames_admitted: int
 
 
-def build_offline_lp(trace: Trace) -> OfflineLp:
-    """Assemble ``eq_lp`` for a trace (sparse, ``O(frames x window)`` non-zeros)."""
-    cfg = trace.config
-    mac, phy = cfg.mac, cfg.phy
-    p = cfg.traffic.processing_ticks(mac.tick_us)
-    n_ul = mac.ul_data_symbols(1, 0, phy.symbol_us, phy.bandwidth_mhz)
-    n_ul_dl = mac.ul_data_symbols(1, 1, phy.symbol_us, phy.bandwidth_mhz)
-    n_dl = mac.dl_data_symbols
-    full = float(phy.plan.full_band_data_subcarriers)
-    horizon = trace.horizon_ticks
-    frames = trace.frames[(trace.frames["ul_ok"] != 0) & (trace.frames["dl_ok"] != 0)]
+_Entries = list[tuple[int, int, float]]
+"""Capacity entries ``(tick, variable, coefficient)``."""
 
-    rows: list[NDArray] = []
-    cols: list[NDArray] = []
-    vals: list[NDArray] = []
-    b: list[float] = []
-    ul_cap: list[tuple[int, int, float]] = []
-    dl_cap: list[tuple[int, int, float]] = []
-    dl_steps: list[tuple[int, int, int]] = []  # (tick, V_k, V_k-1 or -1)
-    objective: list[int] = []
-    nv = 0
-    r = 0
 
-    def add_row(entries: list[tuple[int, float]], rhs: float) -> None:
-        nonlocal r
+class _LpAssembly:
+    """``eq_lp`` of one trace under assembly: COO triplets of the rows, per-tick capacity entries.
+
+    Rows come in the order of the frames (per frame: the camera frame's monotonicity rows, then
+    per state-frame tick its monotonicity and precedence rows), then the DL-exchange rows, then
+    one UL and one DL capacity row per tick; variables per frame ``U`` then ``V``, then ``y``.
+    """
+
+    def __init__(self, trace: Trace) -> None:
+        cfg = trace.config
+        mac, phy = cfg.mac, cfg.phy
+        self.trace = trace
+        self.p = cfg.traffic.processing_ticks(mac.tick_us)
+        self.n_ul = mac.ul_data_symbols(1, 0, phy.symbol_us, phy.bandwidth_mhz)
+        self.n_ul_dl = mac.ul_data_symbols(1, 1, phy.symbol_us, phy.bandwidth_mhz)
+        self.n_dl = mac.dl_data_symbols
+        self.full = float(phy.plan.full_band_data_subcarriers)
+        self.rows: list[NDArray[np.int64]] = []
+        self.cols: list[NDArray[np.int64]] = []
+        self.vals: list[NDArray[np.float64]] = []
+        self.b: list[float] = []
+        self.nv = 0
+        self.ul_cap: _Entries = []
+        self.dl_cap: _Entries = []
+        self.dl_steps: list[tuple[int, int, int]] = []  # (tick, V_k, V_k-1 or -1)
+        self.objective: list[int] = []
+        self.frame_rows: list[int] = []
+
+    def _variables(self, n: int) -> int:
+        first = self.nv
+        self.nv += n
+        return first
+
+    def _row(self, entries: list[tuple[int, float]], rhs: float) -> None:
         idx = np.array([e[0] for e in entries], dtype=np.int64)
-        rows.append(np.full(idx.size, r, dtype=np.int64))
-        cols.append(idx)
-        vals.append(np.array([e[1] for e in entries]))
-        b.append(rhs)
-        r += 1
+        self.rows.append(np.full(idx.size, len(self.b), dtype=np.int64))
+        self.cols.append(idx)
+        self.vals.append(np.array([e[1] for e in entries]))
+        self.b.append(rhs)
 
-    n_frames = 0
-    frame_rows: list[int] = []
-    for row, f in zip(frames.index, frames.itertuples(index=False), strict=True):
-        i, cap, dead = int(f.station), int(f.capture_tick), min(int(f.deadline_tick), horizon)
+    def _window(self, first: int, ticks: NDArray[np.int64], coef: NDArray, cap: _Entries) -> None:
+        """Capacity entries of a cumulative fraction over ``ticks`` (``coef (X_k - X_k-1)``)."""
+        for j, (k, c) in enumerate(zip(ticks.tolist(), coef.tolist(), strict=True)):
+            cap.append((k, first + j, c))
+            if j > 0:
+                cap.append((k, first + j - 1, -c))
+
+    def add_frame(self, row: int, station: int, cap: int, dead: int, ul: int, dl: int) -> None:
+        """The ``U`` and ``V`` of one frame (skipped when its windows are empty)."""
+        trace, p = self.trace, self.p
+        dead = min(dead, trace.horizon_ticks)
         ul_ticks = np.arange(cap, dead - 1 - p)
         dl_ticks = np.arange(cap + 1 + p, dead)
         if ul_ticks.size == 0 or dl_ticks.size == 0:
-            continue
-        n_frames += 1
-        frame_rows.append(int(row))
-        u0 = nv
-        nv += ul_ticks.size
-        v0 = nv
-        nv += dl_ticks.size
-        for j, k in enumerate(ul_ticks):  # monotone and capacity (U_k - U_{k-1})
-            if j > 0:
-                add_row([(u0 + j - 1, 1.0), (u0 + j, -1.0)], 0.0)
-            coef = f.ul_bits / (trace.ul_bpss[i, k] * n_ul * full)
-            ul_cap.append((int(k), u0 + j, coef))
-            if j > 0:
-                ul_cap.append((int(k), u0 + j - 1, -coef))
-        for j, k in enumerate(dl_ticks):
-            if j > 0:
-                add_row([(v0 + j - 1, 1.0), (v0 + j, -1.0)], 0.0)
-            coef = f.dl_bits / (trace.dl_bpss[i, k] * n_dl * full)
-            dl_cap.append((int(k), v0 + j, coef))
-            if j > 0:
-                dl_cap.append((int(k), v0 + j - 1, -coef))
-            dl_steps.append((int(k), v0 + j, v0 + j - 1 if j > 0 else -1))
-            ju = min(int(k) - 1 - p - cap, ul_ticks.size - 1)  # V_k <= U_{k-1-p}
-            add_row([(v0 + j, 1.0), (u0 + ju, -1.0)], 0.0)
-        objective.append(v0 + dl_ticks.size - 1)
-    if dl_steps and n_ul_dl < n_ul:
-        # y_k >= V_k - V_k-1: a tick that carries any state frame holds a DL exchange, which
-        # leaves the UL PPDU at most n_ul_dl of the n_ul symbols.
-        y0 = nv
-        nv += horizon
-        for k, v, v_prev in dl_steps:
-            add_row([(v, 1.0), (v_prev, -1.0), (y0 + k, -1.0)] if v_prev >= 0
-                    else [(v, 1.0), (y0 + k, -1.0)], 0.0)  # fmt: skip
-        for k in sorted({k for k, _, _ in dl_steps}):
-            ul_cap.append((k, y0 + k, (n_ul - n_ul_dl) / n_ul))
-    cap_rows: list[tuple[NDArray, NDArray]] = []
-    for entries in (ul_cap, dl_cap):
+            return
+        self.frame_rows.append(row)
+        u0 = self._variables(ul_ticks.size)
+        v0 = self._variables(dl_ticks.size)
+        for j in range(1, ul_ticks.size):  # U_k-1 <= U_k
+            self._row([(u0 + j - 1, 1.0), (u0 + j, -1.0)], 0.0)
+        for j, k in enumerate(dl_ticks.tolist()):
+            if j > 0:  # V_k-1 <= V_k
+                self._row([(v0 + j - 1, 1.0), (v0 + j, -1.0)], 0.0)
+            self.dl_steps.append((k, v0 + j, v0 + j - 1 if j > 0 else -1))
+            ju = min(k - 1 - p - cap, ul_ticks.size - 1)  # V_k <= U_{k-1-p}
+            self._row([(v0 + j, 1.0), (u0 + ju, -1.0)], 0.0)
+        ul_coef = ul / (trace.ul_bpss[station, ul_ticks] * self.n_ul * self.full)
+        dl_coef = dl / (trace.dl_bpss[station, dl_ticks] * self.n_dl * self.full)
+        self._window(u0, ul_ticks, ul_coef, self.ul_cap)
+        self._window(v0, dl_ticks, dl_coef, self.dl_cap)
+        self.objective.append(v0 + dl_ticks.size - 1)
+
+    def add_dl_exchanges(self) -> None:
+        """``y_k >= V_k - V_k-1``: a tick that carries any state frame holds a DL exchange,
+        which leaves the UL PPDU at most ``n_ul_dl`` of the ``n_ul`` symbols."""
+        if not self.dl_steps or self.n_ul_dl >= self.n_ul:
+            return
+        y0 = self._variables(self.trace.horizon_ticks)
+        for k, v, v_prev in self.dl_steps:
+            prev = [(v_prev, -1.0)] if v_prev >= 0 else []
+            self._row([(v, 1.0), *prev, (y0 + k, -1.0)], 0.0)
+        share = (self.n_ul - self.n_ul_dl) / self.n_ul
+        for k in sorted({k for k, _, _ in self.dl_steps}):
+            self.ul_cap.append((k, y0 + k, share))
+
+    def _capacity(self, entries: _Entries) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+        """One row ``sum coef * var <= 1`` per tick of ``entries``; their rows and ticks."""
         if not entries:
-            cap_rows.append((np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)))
-            continue
-        arr = np.array(entries)
-        ticks = arr[:, 0].astype(np.int64)
+            return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
+        r = len(self.b)
+        ticks = np.array([e[0] for e in entries], dtype=np.int64)
         uniq, inverse = np.unique(ticks, return_inverse=True)
-        rows.append(r + inverse)
-        cols.append(arr[:, 1].astype(np.int64))
-        vals.append(arr[:, 2])
-        b.extend([1.0] * uniq.size)
-        cap_rows.append((r + np.arange(uniq.size), uniq))
-        r += uniq.size
-    A = (
-        sp.csc_matrix(
-            (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(r, nv)
+        self.rows.append(r + inverse.astype(np.int64))
+        self.cols.append(np.array([e[1] for e in entries], dtype=np.int64))
+        self.vals.append(np.array([e[2] for e in entries], dtype=float))
+        self.b.extend([1.0] * uniq.size)
+        return r + np.arange(uniq.size, dtype=np.int64), uniq
+
+    def build(self) -> OfflineLp:
+        ul_rows, ul_ticks = self._capacity(self.ul_cap)
+        dl_rows, dl_ticks = self._capacity(self.dl_cap)
+        shape = (len(self.b), self.nv)
+        A = (
+            sp.csc_matrix(
+                (np.concatenate(self.vals), (np.concatenate(self.rows), np.concatenate(self.cols))),
+                shape=shape,
+            )
+            if self.rows
+            else sp.csc_matrix(shape)
         )
-        if rows
-        else sp.csc_matrix((0, nv))
-    )
-    c = np.zeros(nv)
-    c[objective] = 1.0
-    return OfflineLp(
-        c=c,
-        A=A,
-        b=np.asarray(b, dtype=float),
-        n_frames=n_frames,
-        frame_rows=np.asarray(frame_rows, dtype=np.int64),
-        objective_vars=np.asarray(objective, dtype=np.int64),
-        ul_rows=cap_rows[0][0],
-        ul_ticks=cap_rows[0][1],
-        dl_rows=cap_rows[1][0],
-        dl_ticks=cap_rows[1][1],
-    )
+        c = np.zeros(self.nv)
+        c[self.objective] = 1.0
+        return OfflineLp(
+            c=c,
+            A=A,
+            b=np.asarray(self.b, dtype=float),
+            n_frames=len(self.frame_rows),
+            frame_rows=np.asarray(self.frame_rows, dtype=np.int64),
+            objective_vars=np.asarray(self.objective, dtype=np.int64),
+            ul_rows=ul_rows,
+            ul_ticks=ul_ticks,
+            dl_rows=dl_rows,
+            dl_ticks=dl_ticks,
+        )
+
+
+def _int_column(frames: pd.DataFrame, name: str) -> list[int]:
+    return [int(x) for x in frames[name].to_numpy(dtype=np.int64)]
+
+
+def build_offline_lp(trace: Trace) -> OfflineLp:
+    """Assemble ``eq_lp`` for a trace (sparse, ``O(frames x window)`` non-zeros).
+
+    Frames the channel loses on either hop are left out: no schedule can deliver them.
+    """
+    frames = trace.frames[(trace.frames["ul_ok"] != 0) & (trace.frames["dl_ok"] != 0)]
+    lp = _LpAssembly(trace)
+    columns = ("station", "capture_tick", "deadline_tick", "ul_bits", "dl_bits")
+    rows = frames.index.to_numpy(dtype=np.int64).tolist()
+    for row, *values in zip(rows, *(_int_column(frames, c) for c in columns), strict=True):
+        lp.add_frame(row, *values)
+    lp.add_dl_exchanges()
+    return lp.build()
 
 
 def _solve(lp: OfflineLp, solver: str) -> tuple[float, str]:
@@ -345,9 +383,10 @@ def airtime_prices(trace: Trace) -> AirtimePrices:
     full = float(phy.plan.full_band_data_subcarriers)
     ul_price = ticks["ul_price"].to_numpy()
     work, bill = [], []
-    for f in frames.itertuples(index=False):
-        window = np.arange(f.capture_tick, min(f.deadline_tick, horizon) - 1 - p)
-        w = f.ul_bits / (trace.ul_bpss[f.station, window] * n_ul * full)
+    columns = ("station", "capture_tick", "deadline_tick", "ul_bits")
+    for station, cap, dead, bits in zip(*(_int_column(frames, c) for c in columns), strict=True):
+        window = np.arange(cap, min(dead, horizon) - 1 - p)
+        w = bits / (trace.ul_bpss[station, window] * n_ul * full)
         work.append(float(w[0]))
         bill.append(float(np.min(ul_price[window] * w)))
     frames = frames.assign(

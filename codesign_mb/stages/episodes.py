@@ -1,0 +1,285 @@
+"""Recorded episodes of the robot behind its link: stage B's (and D's) estimator data.
+
+Episodes run through THE closed loop (:class:`~codesign_mb.rollout.ClosedLoop`) with the
+plant behind a :class:`~codesign_mb.network.BernoulliLink` whose QoS comes from a policy,
+by default a :class:`RandomQos` drawing from the :class:`DelayDistribution` ``T`` of
+``eq_control_estimation``. An :class:`EpisodeRecorder` observer keeps, per step, the networked
+observation ``(y_t, zeta_t)``, the previous action, the true remote state ``x_t``, the
+requested reliability and whether the episode succeeded. :func:`estimator_mse` scores any
+:class:`~codesign_mb.estimation.base.Estimator` on recorded episodes.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from codesign_mb.control.base import Controller
+from codesign_mb.core.registry import PlantSpec, make_plant
+from codesign_mb.core.results import atomic_write
+from codesign_mb.estimation.base import Estimator
+from codesign_mb.network.link import BernoulliLink
+from codesign_mb.network.qos import QosPolicy, QosRequest
+from codesign_mb.network.wrapper import LinkObservationWrapper
+from codesign_mb.rollout.loop import ClosedLoop, Transition
+from codesign_mb.stages.training import stage_seeds
+
+__all__ = [
+    "DelayDistribution",
+    "EpisodeData",
+    "EpisodeRecorder",
+    "RandomQos",
+    "cached_episodes",
+    "collect_episodes",
+    "estimator_mse",
+    "position_slice",
+]
+
+
+@dataclass(frozen=True)
+class DelayDistribution:
+    """The QoS distribution ``T`` the estimators are trained under.
+
+    Each episode draws its reliability ``q ~ U[reliability_low, reliability_high]``; each
+    packet is delivered with probability ``q`` (Bernoulli loss, ``eq_d``) after a latency
+    ``tau ~ U{latency_low, ..., latency_high}`` steps. The age ``zeta_t`` follows from both.
+    """
+
+    reliability_low: float = 0.0
+    reliability_high: float = 1.0
+    latency_low: int = 0
+    latency_high: int = 4
+
+    def __post_init__(self) -> None:
+        if not 0.0 <= self.reliability_low <= self.reliability_high <= 1.0:
+            raise ValueError(
+                "need 0 <= reliability_low <= reliability_high <= 1, got "
+                f"{self.reliability_low}, {self.reliability_high}"
+            )
+        if not 0 <= self.latency_low <= self.latency_high:
+            raise ValueError(
+                "need 0 <= latency_low <= latency_high, got "
+                f"{self.latency_low}, {self.latency_high}"
+            )
+
+
+class RandomQos:
+    """A :class:`~codesign_mb.adaptation.QosPolicy` drawing from a :class:`DelayDistribution`."""
+
+    def __init__(self, distribution: DelayDistribution, seed: int | None = None) -> None:
+        self.distribution = distribution
+        self._rng = np.random.default_rng(seed)
+        self.reliability = distribution.reliability_high
+
+    def reset(self, *, seed: int | None = None) -> None:
+        if seed is not None:
+            self._rng = np.random.default_rng(seed)
+        d = self.distribution
+        self.reliability = float(self._rng.uniform(d.reliability_low, d.reliability_high))
+
+    def request(self, observation: NDArray[np.float64], age: int) -> QosRequest:
+        d = self.distribution
+        tau = int(self._rng.integers(d.latency_low, d.latency_high + 1))
+        return QosRequest(self.reliability, tau)
+
+
+@dataclass
+class EpisodeData:
+    """Recorded episodes, one array per episode (``T_i + 1`` steps each, from the reset on).
+
+    ``networked[i][t]`` is the wrapped observation (plant layout with ``y_t``, then
+    ``zeta_t``), ``prev_actions[i][t]`` the action applied before it (zeros at ``t = 0``),
+    ``truth[i][t]`` the true remote state ``x_t``, ``reliability[i][t]`` the requested ``q``.
+    """
+
+    networked: list[np.ndarray] = field(default_factory=list)
+    prev_actions: list[np.ndarray] = field(default_factory=list)
+    truth: list[np.ndarray] = field(default_factory=list)
+    reliability: list[np.ndarray] = field(default_factory=list)
+    success: list[bool] = field(default_factory=list)
+
+    def __len__(self) -> int:
+        return len(self.networked)
+
+    @property
+    def steps(self) -> int:
+        return int(sum(len(x) for x in self.networked))
+
+    def extend(self, other: EpisodeData) -> EpisodeData:
+        for name in ("networked", "prev_actions", "truth", "reliability", "success"):
+            getattr(self, name).extend(getattr(other, name))
+        return self
+
+    def save(self, path: str | Path) -> None:
+        """Write to one ``.npz`` (episodes concatenated, with their lengths)."""
+
+        lengths = np.array([len(x) for x in self.networked], dtype=np.int64)
+        with atomic_write(path) as fh:
+            np.savez_compressed(
+                fh,
+                lengths=lengths,
+                networked=np.concatenate(self.networked),
+                prev_actions=np.concatenate(self.prev_actions),
+                truth=np.concatenate(self.truth),
+                reliability=np.concatenate(self.reliability),
+                success=np.asarray(self.success, dtype=bool),
+            )
+
+    @classmethod
+    def load(cls, path: str | Path) -> EpisodeData:
+        with np.load(path) as z:
+            cuts = np.cumsum(z["lengths"])[:-1]
+            return cls(
+                networked=list(np.split(z["networked"], cuts)),
+                prev_actions=list(np.split(z["prev_actions"], cuts)),
+                truth=list(np.split(z["truth"], cuts)),
+                reliability=list(np.split(z["reliability"], cuts)),
+                success=[bool(s) for s in z["success"]],
+            )
+
+
+class EpisodeRecorder:
+    """A :class:`~codesign_mb.rollout.loop.Transition` observer recording :class:`EpisodeData`.
+
+    :meth:`start` takes the reset's networked observation and ``info``; every step appends
+    the next observation, the action that led to it, the true remote state and the requested
+    reliability; :meth:`finish` appends the episode to ``data``.
+    """
+
+    def __init__(self, action_dim: int) -> None:
+        self.action_dim = int(action_dim)
+        self.networked: list[NDArray[Any]] = []
+        self.prev_actions: list[NDArray[np.float64]] = []
+        self.truth: list[NDArray[np.float64]] = []
+        self.reliability: list[float] = []
+        self.success = False
+
+    def start(self, observation: NDArray[Any], info: dict[str, Any]) -> None:
+        """Begin an episode from the reset's networked observation and ``info``."""
+        self.networked = [np.array(observation)]
+        self.prev_actions = [np.zeros(self.action_dim)]
+        self.truth = [info["remote_true"]]
+        self.reliability = [info["qos_reliability"]]
+        self.success = bool(info.get("success", False))
+
+    def __call__(self, step: Transition) -> None:
+        # a copy: under ideal control the loop writes the truth into the observation it holds
+        self.networked.append(np.array(step.next_observation))
+        self.prev_actions.append(step.action)
+        self.truth.append(step.info["remote_true"])
+        self.reliability.append(step.info["qos_reliability"])
+        self.success = self.success or bool(step.info.get("success", False))
+
+    def finish(self, data: EpisodeData) -> None:
+        """Append the episode to ``data`` (float32 arrays, one row per step from the reset)."""
+        data.networked.append(np.asarray(self.networked, dtype=np.float32))
+        data.prev_actions.append(np.asarray(self.prev_actions, dtype=np.float32))
+        data.truth.append(np.asarray(self.truth, dtype=np.float32))
+        data.reliability.append(np.asarray(self.reliability, dtype=np.float32))
+        data.success.append(self.success)
+
+
+def collect_episodes(
+    plant: PlantSpec,
+    controller: Controller,
+    qos_policy: QosPolicy,
+    *,
+    episodes: int,
+    seed: int,
+    behaviour: Estimator | None = None,
+) -> EpisodeData:
+    """Roll ``controller`` out through a Bernoulli link with ``qos_policy`` and record it.
+
+    ``behaviour`` is the estimator the controller acts through (``None``: ideal control on
+    the true state, i.e. the ideal trajectories). Episode ``i`` is seeded from
+    ``SeedSequence(seed)`` (:func:`~codesign_mb.stages.training.stage_seeds`).
+    """
+    env = LinkObservationWrapper(make_plant(plant), BernoulliLink(), qos_policy)
+    recorder = EpisodeRecorder(int(np.prod(env.action_space.shape)))
+    loop = ClosedLoop(env, behaviour, controller, observer=recorder, record=False)
+    data = EpisodeData()
+    for s in stage_seeds(seed, episodes):
+        info = loop.reset(seed=s)
+        recorder.start(_delivered(loop, env), info)
+        while not loop.done:
+            loop.step()
+        recorder.finish(data)
+    env.close()
+    return data
+
+
+def _delivered(loop: ClosedLoop, env: LinkObservationWrapper) -> NDArray[Any]:
+    """The reset's networked observation as the link delivered it.
+
+    Under ideal control :class:`ClosedLoop` writes the true remote state into the observation
+    it holds; the remote part is restored from the link's reception.
+    """
+    assert loop.observation is not None and env.last_reception is not None
+    observation = np.array(loop.observation)
+    observation[env.remote_slice] = env.last_reception.observation
+    return observation
+
+
+def estimator_mse(
+    estimator: Any, data: EpisodeData, *, remote: slice, position: slice | None = None
+) -> dict[str, float]:
+    """Score any :class:`~codesign_mb.estimation.base.Estimator` on recorded episodes.
+
+    Runs ``reset``/``estimate`` along each episode exactly as a rollout does and returns the
+    mean squared error of the remote estimate over all steps (``mse``, summed over the remote
+    entries). With ``position`` (the ``object_pos`` slice of the plant observation) also the
+    object position's ``mse_position`` (m^2) and RMSE, overall and split into the steps where
+    the object rides the belt and where it is off it (more than 1 cm above its first height:
+    grasped and lifted), since the two phases have different dynamics.
+    """
+    sq, n = 0.0, 0
+    sq_pos = np.zeros(2)
+    n_pos = np.zeros(2)
+    for nets, prevs, truth in zip(data.networked, data.prev_actions, data.truth, strict=True):
+        nets64 = np.asarray(nets, dtype=np.float64)
+        estimates = [estimator.reset(nets64[0])]
+        for t in range(1, len(nets64)):
+            estimates.append(estimator.estimate(nets64[t], np.asarray(prevs[t], dtype=np.float64)))
+        est = np.asarray(estimates)
+        sq += float(np.sum((est[:, remote] - truth) ** 2))
+        n += len(nets64)
+        if position is not None:
+            true_pos = _position_truth(truth, remote, position)
+            err = np.sum((est[:, position] - true_pos) ** 2, axis=1)
+            off = true_pos[:, 2] > true_pos[0, 2] + 0.01
+            for i, mask in enumerate((~off, off)):
+                sq_pos[i] += float(err[mask].sum())
+                n_pos[i] += int(mask.sum())
+    out = {"mse": sq / max(n, 1)}
+    if position is not None:
+        out["mse_position"] = float(sq_pos.sum() / max(n, 1))
+        out["rmse_position_m"] = float(np.sqrt(out["mse_position"]))
+        for i, phase in enumerate(("on_belt", "off_belt")):
+            if n_pos[i]:
+                out[f"rmse_position_{phase}_m"] = float(np.sqrt(sq_pos[i] / n_pos[i]))
+    return out
+
+
+def _position_truth(truth: np.ndarray, remote: slice, position: slice) -> np.ndarray:
+    start = position.start - remote.start
+    return truth[:, start : start + (position.stop - position.start)]
+
+
+def position_slice(env: Any) -> slice | None:
+    """The ``object_pos`` slice of a plant's layout (``None`` without one)."""
+    layout = getattr(env.unwrapped, "observation_layout", None) or {}
+    return layout.get("object_pos")
+
+
+def cached_episodes(path: Path, make: Callable[[], EpisodeData]) -> EpisodeData:
+    """The episodes saved at ``path``; else ``make()``'s, saved there first (resumable runs)."""
+    if path.is_file():
+        return EpisodeData.load(path)
+    data = make()
+    data.save(path)
+    return data

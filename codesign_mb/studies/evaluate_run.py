@@ -1,0 +1,86 @@
+"""``codesign evaluate``: one configuration's seeded episodes, written with their summary.
+
+:func:`run_evaluation` runs the episodes of an
+:class:`~codesign_mb.evaluation.evaluate.EvaluateConfig` (in parallel,
+:func:`~codesign_mb.evaluation.evaluate.iter_episodes`), summarises them
+(:func:`~codesign_mb.evaluation.evaluate.summarize`: success with its Wilson interval, QoS,
+age and, with an MPC, its solve times and failed solves) and writes both into a results
+folder.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable, Iterable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import pandas as pd
+
+from codesign_mb.core.results import atomic_write, to_jsonable, write_results
+from codesign_mb.evaluation.evaluate import (
+    EvaluateConfig,
+    iter_episodes,
+    rows_to_table,
+    summarize,
+)
+
+__all__ = ["EvaluationOutputs", "evaluation_label", "run_evaluation"]
+
+
+def evaluation_label(config: EvaluateConfig) -> str:
+    """A short name of the configuration: ``"mpc+predictor q=0.8 tau=1"``."""
+    return (
+        f"{config.controller}+{config.estimator} q={config.reliability:g} "
+        f"tau={config.latency_steps}"
+    )
+
+
+@dataclass(frozen=True)
+class EvaluationOutputs:
+    """What :func:`run_evaluation` wrote.
+
+    ``files``: ``parquet``, ``csv``, ``json`` (the per-episode table) and ``summary``
+    (``<name>_summary.json``).
+    """
+
+    table: pd.DataFrame
+    summary: dict[str, Any]
+    files: dict[str, Path] = field(default_factory=dict)
+
+
+def run_evaluation(
+    config: EvaluateConfig,
+    out_dir: str | Path,
+    *,
+    name: str = "evaluate",
+    progress: Callable[[Iterator[dict[str, Any]], int], Iterable[dict[str, Any]]] | None = None,
+) -> EvaluationOutputs:
+    """Run ``config``'s episodes and write ``<name>.{parquet,csv,json}`` and its summary.
+
+    ``progress(rows, total)`` wraps the stream of finished episodes (e.g. a progress bar).
+    The summary is also in the table's metadata (``extra.summary``).
+    """
+    controller, estimator, qos = config.components()
+    rows: Iterable[dict[str, Any]] = iter_episodes(
+        controller,
+        estimator,
+        qos,
+        config.env_config(),
+        config.trials,
+        config.seed,
+        workers=config.workers,
+        max_steps=config.max_steps,
+    )
+    if progress is not None:
+        rows = progress(iter(rows), config.trials)
+    table = rows_to_table(list(rows))
+    summary = summarize(table)
+    files = dict(
+        write_results(out_dir, table=table, config=config, name=name, extra={"summary": summary})
+    )
+    files["summary"] = Path(out_dir) / f"{name}_summary.json"
+    with atomic_write(files["summary"], "w") as fh:
+        fh.write(json.dumps(to_jsonable(summary), indent=2) + "\n")
+    return EvaluationOutputs(table, summary, files)

@@ -1,0 +1,152 @@
+"""Fig. 6 (``fig_wifi``) as a figure, and the files of ``codesign wifi capacity``.
+
+:func:`plot_capacity` is the one renderer of Fig. 6: ``codesign wifi capacity`` draws it from
+:func:`~codesign_mb.studies.fig_wifi.run_capacity`'s trials and ``codesign report`` from any
+``fig_wifi`` table. :func:`run_capacity_study` runs the sweep and writes its files.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterable
+from pathlib import Path
+from typing import Any
+
+import pandas as pd
+
+from codesign_mb.core.config import to_mapping
+from codesign_mb.core.results import write_results
+from codesign_mb.studies.fig_wifi import (
+    CHANNEL_PRESETS,
+    CapacityConfig,
+    capacity_table,
+    describe_channel,
+    run_capacity,
+)
+from codesign_mb.studies.figures import integer_ticks, new_figure, save_png
+
+__all__ = ["capacity_curves", "plot_capacity", "run_capacity_study"]
+
+_SCHEDULER_STYLES = {
+    "greedy": ("-", "o"),
+    "convex": ("--", "s"),
+    "convex-cvxpy": (":", "^"),
+    "": ("-", "o"),
+}
+
+
+def capacity_curves(results: pd.DataFrame, *, success_target: float = 0.95) -> pd.DataFrame:
+    """:func:`~codesign_mb.studies.fig_wifi.capacity_table` with the band of each point.
+
+    ``band_low`` and ``band_high`` are the mean of the columns of that name when ``results``
+    has them (e.g. a Wilson interval per point), else the spread of the trials' success
+    rates (min-max).
+    """
+    keys = ["channel", "scheduler", "pipeline", "robots"]
+    curves = capacity_table(results, success_target=success_target)
+    grouped = results.groupby(keys)
+    if "band_low" in results and "band_high" in results:
+        band = grouped[["band_low", "band_high"]].mean()
+    else:
+        band = grouped["success_rate"].agg(band_low="min", band_high="max")
+    return curves.merge(band.reset_index(), on=keys)
+
+
+def plot_capacity(
+    results: pd.DataFrame,
+    path: str | Path,
+    *,
+    success_target: float = 0.95,
+    dpi: int = 130,
+) -> Path:
+    """Fig. 6 as a PNG: per channel, success (top) and requested reliability (bottom) vs N.
+
+    One colour per pipeline (static QoS, co-design), one line style per scheduler (greedy
+    solid, convex dashed); the band is the spread of the trials' success rates (min-max), or
+    the given ``band_low`` and ``band_high`` (:func:`capacity_curves`). ``results`` has
+    :func:`~codesign_mb.studies.fig_wifi.run_capacity`'s columns ``channel``, ``scheduler``,
+    ``pipeline``, ``robots`` and ``success_rate``; the bottom row of panels (requested
+    ``mean_reliability``, ``delivered_fraction``) is drawn when one of them is given.
+    """
+    curves = capacity_curves(results, success_target=success_target)
+    channels = list(dict.fromkeys(results["channel"]))
+    pipelines = list(dict.fromkeys(results["pipeline"]))
+    colours = {p: f"C{i % 10}" for i, p in enumerate(pipelines)}
+    bottom = any(
+        c in results and results[c].notna().any()
+        for c in ("mean_reliability", "delivered_fraction")
+    )
+    fig, axes = new_figure(2 if bottom else 1, len(channels), width=4.8, height=3.2, sharex="col")
+    for c, channel in enumerate(channels):
+        part = curves[curves["channel"] == channel]
+        for (scheduler, pipeline), line in part.groupby(["scheduler", "pipeline"], sort=False):
+            style = (*_SCHEDULER_STYLES.get(str(scheduler), ("-.", "x")), colours[pipeline])
+            name = ", ".join(str(v) for v in (pipeline, scheduler) if str(v))
+            _curve(axes[:, c], line.sort_values("robots"), name, style, success_target)
+        _channel_axes(axes[:, c], str(channel), success_target)
+    fig.suptitle("Task success vs robots on one WiFi 6 channel (fig_wifi)", fontsize=10)
+    return save_png(fig, path, dpi=dpi)
+
+
+def _curve(
+    axes: Any, line: pd.DataFrame, name: str, style: tuple[str, str, str], success_target: float
+) -> None:
+    """One (scheduler, pipeline) curve: success with its band on top, reliability below."""
+    ls, marker, colour = style
+    cap = int(line["capacity_robots"].iloc[0])
+    largest = int(line["robots"].max())
+    reach = f">= {cap} robots" if cap == largest else f"{cap} robots" if cap else "none"
+    label = f"{name} (at {success_target:.0%}: {reach})"
+    x = line["robots"].to_numpy()
+    axes[0].plot(x, line["success_rate"], ls, marker=marker, color=colour, label=label)
+    axes[0].fill_between(x, line["band_low"], line["band_high"], color=colour, alpha=0.08, lw=0)
+    if len(axes) > 1:
+        axes[1].plot(x, line["mean_reliability"], ls, marker=marker, color=colour, label=label)
+        axes[1].plot(x, line["delivered_fraction"], ":", color=colour, alpha=0.6)
+
+
+def _channel_axes(axes: Any, channel: str, success_target: float) -> None:
+    top = axes[0]
+    top.axhline(success_target, color="0.5", lw=0.8, ls=":")
+    top.set_ylim(-0.02, 1.05)
+    top.set_ylabel("task success rate")
+    title = f"{channel}: {describe_channel(channel)}" if channel in CHANNEL_PRESETS else channel
+    top.set_title(title, fontsize=8)
+    top.grid(alpha=0.3)
+    top.legend(fontsize=7, loc="lower left")
+    if len(axes) > 1:
+        bottom = axes[1]
+        bottom.set_ylim(-0.02, 1.05)
+        bottom.set_ylabel("requested q (solid/dashed), delivered (dotted)", fontsize=8)
+        bottom.grid(alpha=0.3)
+    axes[-1].set_xlabel("robots sharing the channel")
+    integer_ticks(axes[-1])
+
+
+def run_capacity_study(
+    config: CapacityConfig,
+    out_dir: str | Path,
+    *,
+    progress: Callable[[Iterable[Any]], Iterable[Any]] | None = None,
+) -> tuple[pd.DataFrame, pd.DataFrame, dict[str, Path]]:
+    """Run the capacity sweep and write Fig. 6 into ``out_dir``.
+
+    Writes ``fig_wifi.{parquet,csv,json}`` (one row per trial; the curves with their capacity
+    in the metadata) and ``fig_wifi.png`` (:func:`plot_capacity`). Returns the trials, the
+    curves (:func:`~codesign_mb.studies.fig_wifi.capacity_table`) and the files (``parquet``,
+    ``csv``, ``json``, ``png``).
+    """
+    results = run_capacity(config, progress=progress)
+    curves = capacity_table(results, success_target=config.success_target)
+    files = dict(
+        write_results(
+            out_dir,
+            table=results,
+            config=to_mapping(config),
+            name="fig_wifi",
+            extra={"curves": curves.to_dict("records")},
+        )
+    )
+    files["png"] = plot_capacity(
+        results, Path(out_dir) / "fig_wifi.png", success_target=config.success_target
+    )
+    return results, curves, files

@@ -1,0 +1,410 @@
+"""Table I's outputs: the Pareto plot, Fig. 5 (``fig_lat``), the Markdown table, the files.
+
+:func:`plot_pareto` and :func:`plot_timeline` are the one renderer of each figure: ``codesign
+table`` draws them from :func:`~codesign_mb.studies.table.run_table`'s summary and
+``codesign report`` from whatever ``tab_p`` and ``fig_lat`` tables a results folder holds.
+:func:`write_table_outputs` writes everything ``codesign table`` leaves in its folder;
+:func:`run_table_study` runs the table and writes it.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from codesign_mb.core.results import atomic_write, write_results
+from codesign_mb.studies.figures import new_figure, save_png
+from codesign_mb.studies.table import TableConfig, qos_timeline, run_table, timeline_row_name
+
+__all__ = [
+    "SUMMARY_COLUMNS",
+    "TableOutputs",
+    "markdown_table",
+    "plot_pareto",
+    "plot_timeline",
+    "run_table_study",
+    "write_table_outputs",
+]
+
+SUMMARY_COLUMNS: tuple[str, ...] = (
+    "plant",
+    "row",
+    "status",
+    "success_rate",
+    "success_ci_low",
+    "success_ci_high",
+    "mean_requested_reliability",
+    "delivered_fraction",
+    "train_env_steps",
+    "train_wall_time_s",
+    "cpu_ms_per_step",
+    "pareto",
+    "paper_success_rate",
+    "paper_mean_reliability",
+    "mpc_failures",
+)
+"""The summary columns ``codesign table --json`` prints."""
+
+
+# -- Fig. 5 --------------------------------------------------------------------------------------
+def plot_timeline(
+    panels: Sequence[tuple[str, pd.DataFrame]], path: str | Path, *, dpi: int = 120
+) -> Path:
+    """Fig. 5 (PNG): the requested reliability along an episode, one panel per ``(title, steps)``.
+
+    ``steps`` is a :func:`~codesign_mb.rollout.loop.rollout` record: columns ``t`` and
+    ``qos_reliability`` (``q_t``); optional ``delivered`` (dots on ``q_t``), ``lifted`` and
+    ``success`` (their first step is marked). A panel's title gets the average ``q_t``.
+    """
+    fig, axes = new_figure(len(panels), 1, width=7.0, height=3.2 if len(panels) == 1 else 2.6)
+    for ax, (title, steps) in zip(axes[:, 0], panels, strict=True):
+        _timeline_panel(ax, steps.sort_values("t"), title)
+    axes[-1, 0].set_xlabel("step t (40 ms)")
+    return save_png(fig, path, dpi=dpi)
+
+
+def _timeline_panel(ax: Any, steps: pd.DataFrame, title: str) -> None:
+    t = steps["t"].to_numpy()
+    q = steps["qos_reliability"].to_numpy(float)
+    ax.step(t, q, where="post", color="tab:blue", label="requested reliability $q_t$")
+    if "delivered" in steps:
+        delivered = steps["delivered"].astype(bool).to_numpy()
+        ax.plot(t[delivered], q[delivered], "o", ms=3, color="tab:green", label="packet delivered")
+    for column, label, style in (("lifted", "object lifted", "--"), ("success", "success", ":")):
+        if column in steps and steps[column].astype(bool).any():
+            first = int(np.argmax(steps[column].astype(bool).to_numpy()))
+            ax.axvline(t[first], color="tab:red", ls=style, lw=1, label=f"{label} (t={t[first]})")
+    ax.set_ylabel("reliability (PDR)")
+    ax.set_ylim(-0.02, 1.02)
+    ax.set_title(f"{title}: average PDR {q.mean():.0%}", fontsize=9)
+    ax.grid(alpha=0.3)
+    ax.legend(loc="upper right", fontsize=7)
+
+
+# -- the Pareto plot -----------------------------------------------------------------------------
+_QOS_COLOURS = {"static": "tab:blue", "rule": "tab:green", "learned": "tab:red"}
+_SPARE_COLOURS = ("tab:purple", "tab:orange", "tab:brown", "tab:pink", "tab:olive", "tab:cyan")
+_PAIR_MARKERS = {
+    ("sac", "mlp"): "o",
+    ("sac", "lstm"): "o",
+    ("sac", "none"): "v",
+    ("mpc", "predictor"): "s",
+    ("mpc", "none"): "D",
+    ("sac", "predictor"): "^",
+    ("mpc", "mlp"): "P",
+    ("mpc", "lstm"): "P",
+    ("learned",): "o",
+    ("model_based",): "s",
+}
+_SPARE_MARKERS = ("X", "*", "h", "<", ">", "p", "d")
+
+
+class _PointStyle:
+    """Marker per controller and estimator (else pipeline, else row), colour per QoS (else row)."""
+
+    def __init__(self, columns: Sequence[str]) -> None:
+        if "controller" in columns and "estimator" in columns:
+            self.pair: tuple[str, ...] = ("controller", "estimator")
+        else:
+            self.pair = ("pipeline",) if "pipeline" in columns else ("row",)
+        self.colour_by = "qos" if "qos" in columns else "row"
+        self.markers = dict(_PAIR_MARKERS)
+        self.colours = dict(_QOS_COLOURS)
+        self.handles: dict[str, Any] = {}
+
+    def __call__(self, r: pd.Series) -> tuple[str, str]:
+        from matplotlib.lines import Line2D
+
+        pair = tuple(str(r[c]) for c in self.pair)
+        if pair not in self.markers:
+            self.markers[pair] = _SPARE_MARKERS[len(self.markers) % len(_SPARE_MARKERS)]
+        key = str(r[self.colour_by])
+        if key not in self.colours:
+            spare = len(self.colours) - len(_QOS_COLOURS)
+            self.colours[key] = _SPARE_COLOURS[spare] if spare < len(_SPARE_COLOURS) else "tab:gray"
+        marker, colour = self.markers[pair], self.colours[key]
+        self.handles.setdefault(
+            str(r["row"]), Line2D([], [], ls="", marker=marker, color=colour, mfc="white")
+        )
+        return marker, colour
+
+
+def plot_pareto(
+    summary: pd.DataFrame,
+    path: str | Path,
+    *,
+    title: str = "",
+    reference: pd.DataFrame | None = None,
+    reference_label: str = "paper",
+    dpi: int = 120,
+) -> Path:
+    """Success versus average requested reliability, one panel per plant (PNG).
+
+    Every evaluated row is a point with its 95 % Wilson interval: the colour is its QoS policy
+    (static blue, rule green, SAC red), the marker its controller and estimator (the same in
+    every panel); the Pareto-optimal ones (column ``pareto``) are ringed and joined by the
+    front (dashed).
+
+    ``summary`` has :func:`~codesign_mb.studies.table.run_table`'s columns ``row``,
+    ``success_rate``, ``success_ci_low``, ``success_ci_high``, ``mean_requested_reliability``
+    and ``pareto``; optional: ``plant`` (one panel each), ``status`` (rows not ``"ok"`` are
+    counted in the panel's title), ``controller`` and ``estimator`` (the marker; else
+    ``pipeline``, else the row), ``qos`` (the colour; else the row). ``reference`` points
+    (columns ``success_rate`` and ``mean_requested_reliability``, e.g. the paper's Table I)
+    are black crosses in every panel.
+    """
+    from matplotlib.lines import Line2D
+
+    summary = summary.assign(plant=summary.get("plant", ""), status=summary.get("status", "ok"))
+    plants = list(dict.fromkeys(summary["plant"])) or [""]
+    style = _PointStyle(list(summary.columns))
+    fig, axes = new_figure(1, len(plants), width=4.6, height=4.6, sharey=True)
+    for ax, plant in zip(axes[0], plants, strict=True):
+        _pareto_panel(ax, summary[summary["plant"] == plant], style, plant)
+        if reference is not None:
+            ax.plot(
+                reference["mean_requested_reliability"],
+                reference["success_rate"],
+                "x",
+                color="black",
+            )
+    if reference is not None:
+        style.handles[reference_label] = Line2D([], [], ls="", marker="x", color="black")
+    axes[0, 0].set_ylabel("success rate (95 % Wilson interval)")
+    ring = Line2D([], [], ls="", marker="o", ms=10, mfc="none", mec="black")
+    fig.legend(
+        [*style.handles.values(), ring],
+        [*style.handles.keys(), "Pareto-optimal (filled and ringed; dashed: the front)"],
+        loc="outside lower center",
+        ncols=min(4, len(style.handles) + 1),
+        fontsize=7,
+    )
+    if title:
+        fig.suptitle(title, fontsize=10)
+    return save_png(fig, path, dpi=dpi)
+
+
+def _pareto_panel(ax: Any, rows: pd.DataFrame, style: _PointStyle, plant: str) -> None:
+    ok = rows[rows["status"] == "ok"]
+    x_all = ok["mean_requested_reliability"].astype(float)
+    drawn = ok[np.isfinite(x_all) & np.isfinite(ok["success_rate"].astype(float))]
+    for _, r in drawn.iterrows():
+        marker, colour = style(r)
+        x, y = r["mean_requested_reliability"], r["success_rate"]
+        low, high = r["success_ci_low"], r["success_ci_high"]
+        ax.errorbar(
+            x,
+            y,
+            yerr=[[y - low], [high - y]] if np.isfinite([low, high]).all() else None,
+            fmt=marker,
+            color=colour,
+            mfc=colour if r["pareto"] else "white",
+            ms=7,
+            capsize=2,
+            lw=0.8,
+            alpha=0.9,
+        )
+        if bool(r["pareto"]):
+            ax.plot(x, y, "o", ms=15, mfc="none", mec="black", mew=1.0)
+    front = drawn[drawn["pareto"].astype(bool)].sort_values("mean_requested_reliability")
+    if len(front):
+        ax.step(
+            front["mean_requested_reliability"],
+            front["success_rate"],
+            where="post",
+            color="black",
+            lw=0.8,
+            ls="--",
+        )
+    notes = []
+    if len(rows) > len(ok):
+        notes.append(f"{len(rows) - len(ok)} rows not run")
+    if len(ok) > len(drawn):
+        notes.append(f"{len(ok) - len(drawn)} rows without an average reliability")
+    ax.set_title(f"{plant}" + (f" ({'; '.join(notes)})" if notes else ""), fontsize=9)
+    ax.set_xlabel("average requested reliability (PDR)")
+    ax.set_xlim(-0.03, 1.05)
+    ax.set_ylim(-0.03, 1.05)
+    ax.grid(alpha=0.3)
+
+
+# -- Markdown ------------------------------------------------------------------------------------
+def _pct(v: float) -> str:
+    return "" if v is None or not np.isfinite(v) else f"{100 * v:.0f} %"
+
+
+def markdown_table(summary: pd.DataFrame) -> str:
+    """The summary as a Markdown table (percentages, interval, training cost, CPU per step).
+
+    A column ``MPC failures`` (failed solves summed over the episodes) is added when a row of
+    the summary has an MPC.
+    """
+    failures = summary["mpc_failures"] if "mpc_failures" in summary else pd.Series(dtype=float)
+    with_mpc = bool(np.isfinite(failures.astype(float)).any())
+    columns = [
+        "plant",
+        "row",
+        "success (95 % CI)",
+        "avg. requested reliability",
+        "delivered",
+        "training (env steps, wall)",
+        "CPU ms/step",
+        *(["MPC failures"] if with_mpc else []),
+        "Pareto",
+        "paper (success / PDR)",
+    ]
+    lines = ["| " + " | ".join(columns) + " |", "|" + "---|" * len(columns)]
+    for _, r in summary.iterrows():
+        paper = ""
+        if r["paper_success_rate"] is not None and np.isfinite(r["paper_success_rate"]):
+            paper = f"{_pct(r['paper_success_rate'])} / {_pct(r['paper_mean_reliability'])}"
+        if r["status"] != "ok":
+            blanks = " |" * (6 if with_mpc else 5)
+            lines.append(f"| {r['plant']} | {r['row']} | {r['status']} |{blanks} {paper} |")
+        else:
+            lines.append("| " + " | ".join(_markdown_cells(r, with_mpc, paper)) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def _markdown_cells(r: pd.Series, with_mpc: bool, paper: str) -> list[str]:
+    steps, wall = r["train_env_steps"], r["train_wall_time_s"]
+    cost = "0" if steps == 0 else f"{int(steps):,} steps, {wall / 60:.0f} min"
+    failures = r.get("mpc_failures", math.nan)
+    return [
+        str(r["plant"]),
+        str(r["row"]),
+        f"{_pct(r['success_rate'])} "
+        f"[{100 * r['success_ci_low']:.1f}, {100 * r['success_ci_high']:.1f}]",
+        _pct(r["mean_requested_reliability"]),
+        _pct(r["delivered_fraction"]),
+        cost,
+        f"{r['cpu_ms_per_step']:.2f}",
+        *([f"{int(failures)}" if np.isfinite(failures) else ""] if with_mpc else []),
+        "yes" if r["pareto"] else "",
+        paper,
+    ]
+
+
+# -- the files of ``codesign table`` -------------------------------------------------------------
+@dataclass(frozen=True)
+class TableOutputs:
+    """What :func:`write_table_outputs` wrote.
+
+    Attributes
+    ----------
+    summary, episodes:
+        The tables written (``tab_p``, ``tab_p_episodes``).
+    out_dir:
+        The results folder.
+    files:
+        Name -> path: ``tab_p`` and ``tab_p_episodes`` (their Parquet file), ``tab_p.md``,
+        ``fig_pareto.png`` and, when drawn, ``fig_lat`` and ``fig_lat.png``.
+    fig_lat_note:
+        Why Fig. 5 was not drawn (``None`` when it was).
+    """
+
+    summary: pd.DataFrame
+    episodes: pd.DataFrame
+    out_dir: Path
+    files: dict[str, Path] = field(default_factory=dict)
+    fig_lat_note: str | None = None
+
+
+def write_table_outputs(
+    summary: pd.DataFrame,
+    episodes: pd.DataFrame,
+    out_dir: str | Path,
+    config: TableConfig,
+    *,
+    extra: dict[str, Any] | None = None,
+) -> TableOutputs:
+    """Write the files of ``codesign table`` into ``out_dir``.
+
+    ``tab_p.{parquet,csv,json}`` (the summary), ``tab_p.md`` (:func:`markdown_table`),
+    ``tab_p_episodes.*``, ``fig_pareto.png`` (:func:`plot_pareto`) and, when the row of
+    :func:`~codesign_mb.studies.table.timeline_row_name` has a successful episode on the
+    first plant, ``fig_lat.*`` (its per-step record, re-run from its seed) and
+    ``fig_lat.png`` (:func:`plot_timeline`). ``extra`` goes into every table's metadata,
+    with the plants.
+    """
+    out = Path(out_dir)
+    plants = {p.label: {"name": p.name, "options": p.options} for p in config.table_plants()}
+    extra = {**(extra or {}), "plants": plants}
+    files: dict[str, Path] = {}
+    files["tab_p"] = write_results(out, table=summary, config=config, name="tab_p", extra=extra)[
+        "parquet"
+    ]
+    files["tab_p_episodes"] = write_results(
+        out, table=episodes, config=config, name="tab_p_episodes", extra=extra
+    )["parquet"]
+    with atomic_write(out / "tab_p.md", "w") as fh:
+        fh.write(markdown_table(summary))
+    files["tab_p.md"] = out / "tab_p.md"
+    files["fig_pareto.png"] = plot_pareto(
+        summary, out / "fig_pareto.png", title=f"codesign table --pipeline {config.pipeline}"
+    )
+    note = _write_timeline(summary, episodes, out, config, extra, files)
+    return TableOutputs(summary, episodes, out, files, note)
+
+
+def _write_timeline(
+    summary: pd.DataFrame,
+    episodes: pd.DataFrame,
+    out: Path,
+    config: TableConfig,
+    extra: dict[str, Any],
+    files: dict[str, Path],
+) -> str | None:
+    """Fig. 5's table and PNG into ``out`` (added to ``files``), or why it was not drawn."""
+    first = config.table_plants()[0]
+    name = timeline_row_name(config, summary)
+    row = next((r for r in config.table_rows() if r.name == name), None)
+    found = None if row is None else qos_timeline(first, row, episodes)
+    if row is None or found is None:
+        status = summary.loc[(summary["row"] == name) & (summary["plant"] == first.label), "status"]
+        why = (
+            f"{name!r} was not run ({status.iloc[0]})"
+            if len(status) and status.iloc[0] != "ok"
+            else f"no successful episode of {name!r} on {first.label}"
+        )
+        return f"{why}: fig_lat not drawn"
+    steps, seed = found
+    files["fig_lat"] = write_results(
+        out,
+        table=steps,
+        config=config,
+        name="fig_lat",
+        extra={**extra, "row": row.name, "plant": first.label, "episode_seed": seed},
+    )["parquet"]
+    files["fig_lat.png"] = plot_timeline(
+        [(f"{row.name}, {first.label}", steps)], out / "fig_lat.png"
+    )
+    return None
+
+
+def run_table_study(
+    config: TableConfig,
+    out_dir: str | Path,
+    *,
+    progress: Callable[..., Any] | None = None,
+    command: str = "",
+) -> TableOutputs:
+    """Run the table (:func:`~codesign_mb.studies.table.run_table`) and write its files.
+
+    Torch runs on one thread in this process (the machine is shared; the workers add the
+    parallelism). ``command`` and the run's wall time go into the tables' metadata.
+    """
+    import torch
+
+    torch.set_num_threads(1)
+    started = time.perf_counter()
+    summary, episodes = run_table(config, progress=progress)
+    extra = {"command": command, "wall_time_s": round(time.perf_counter() - started, 1)}
+    return write_table_outputs(summary, episodes, out_dir, config, extra=extra)
