@@ -88,3 +88,28 @@ def test_pool_reruns_the_tasks_of_a_dead_worker(tmp_path: Path) -> None:
     with pytest.warns(RuntimeWarning, match="worker process died"):
         results = dict(pool.imap(_dies_once, [(marker, i) for i in range(4)], workers=2))
     assert results == {i: i + 1 for i in range(4)}
+
+
+def test_results_record_provenance_and_checkpoint_digests(tmp_path: Path) -> None:
+    import json
+
+    import pandas as pd
+
+    from codesign_mb.core.results import file_digest, write_results
+
+    weights = tmp_path / "ckpt"
+    weights.mkdir()
+    (weights / "model.zip").write_bytes(b"weights v1")
+    paths = write_results(
+        tmp_path / "out",
+        table=pd.DataFrame({"x": [1, 2]}),
+        config={"a": 1},
+        name="t",
+        checkpoints={"stage_a": weights},
+    )
+    meta = json.loads(paths["json"].read_text())["provenance"]
+    assert meta["checkpoints"] == {"stage_a": file_digest(weights)}
+    assert "numpy" in meta["versions"] and "commit" in meta
+    before = file_digest(weights)
+    (weights / "model.zip").write_bytes(b"weights v2")
+    assert file_digest(weights) != before

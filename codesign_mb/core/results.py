@@ -20,21 +20,36 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import hashlib
 import json
 import math
 import os
 import platform
 import re
+import subprocess
 import tempfile
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from datetime import UTC, date, datetime
+from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 from typing import IO, Any
 
 import numpy as np
 import pandas as pd
 
-__all__ = ["ResultsDir", "atomic_write", "package_version", "to_jsonable", "write_results"]
+__all__ = [
+    "ResultsDir",
+    "atomic_write",
+    "file_digest",
+    "package_version",
+    "provenance",
+    "to_jsonable",
+    "write_results",
+]
+
+_VERSIONED = ("numpy", "scipy", "pandas", "mujoco", "pin", "casadi", "cvxpy", "osqp", "torch",
+              "stable-baselines3", "gymnasium")  # fmt: skip
+"""Distributions whose versions every results file records."""
 
 _NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
 _UMASK = os.umask(0)
@@ -44,12 +59,58 @@ _FORMATS = ("parquet", "csv", "json")
 
 def package_version() -> str:
     """The installed ``codesign_mb`` version (``"unknown"`` when not installed)."""
-    from importlib.metadata import PackageNotFoundError, version
-
     try:
         return version("codesign_mb")
     except PackageNotFoundError:
         return "unknown"
+
+
+def _git_commit() -> str | None:
+    """The commit of the source checkout this package runs from (``+dirty`` if modified)."""
+    source = Path(__file__).resolve().parents[2]
+    if not (source / ".git").exists():
+        return None
+    try:
+        commit = subprocess.run(
+            ["git", "-C", str(source), "rev-parse", "HEAD"],
+            capture_output=True, text=True, timeout=5, check=True,
+        ).stdout.strip()  # fmt: skip
+        dirty = subprocess.run(
+            ["git", "-C", str(source), "status", "--porcelain", "--untracked-files=no"],
+            capture_output=True, text=True, timeout=5, check=True,
+        ).stdout.strip()  # fmt: skip
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return commit + ("+dirty" if dirty else "")
+
+
+def file_digest(path: str | Path) -> str:
+    """``sha256:<hex>`` of a file, or of every file under a folder (sorted relative paths)."""
+    p = Path(path)
+    digest = hashlib.sha256()
+    files = sorted(f for f in p.rglob("*") if f.is_file()) if p.is_dir() else [p]
+    for f in files:
+        if p.is_dir():
+            digest.update(f.relative_to(p).as_posix().encode())
+        digest.update(f.read_bytes())
+    return f"sha256:{digest.hexdigest()}"
+
+
+def provenance(checkpoints: Mapping[str, str | Path] | None = None) -> dict[str, Any]:
+    """What produced a result: source commit, package and dependency versions, checkpoints.
+
+    ``checkpoints`` maps a name (e.g. ``"stage_a"``) to a file or folder; each is recorded by
+    its content hash, so a result can be matched to the exact weights that made it.
+    """
+    versions = {}
+    for dist in _VERSIONED:
+        with contextlib.suppress(PackageNotFoundError):
+            versions[dist] = version(dist)
+    return {
+        "commit": _git_commit(),
+        "versions": versions,
+        "checkpoints": {k: file_digest(v) for k, v in (checkpoints or {}).items()},
+    }
 
 
 @contextlib.contextmanager
@@ -147,6 +208,7 @@ def write_results(
     config: Any,
     name: str,
     extra: Mapping[str, Any] | None = None,
+    checkpoints: Mapping[str, str | Path] | None = None,
 ) -> dict[str, Path]:
     """Write ``table`` as ``<name>.parquet`` + ``<name>.csv`` + ``<name>.json`` into ``out_dir``.
 
@@ -164,6 +226,9 @@ def write_results(
         Table name, e.g. ``"tab_p"`` (letters, digits, ``_ . -``).
     extra:
         More JSON-able metadata (seeds, wall time, command line, ...).
+    checkpoints:
+        Learned components the table was made with, by name: recorded by content hash in
+        the metadata's ``provenance`` (with the source commit and dependency versions).
 
     Returns
     -------
@@ -184,6 +249,7 @@ def write_results(
         "version": package_version(),
         "created": datetime.now(UTC).isoformat(timespec="seconds"),
         "python": platform.python_version(),
+        "provenance": provenance(checkpoints),
         "n_rows": len(table),
         "columns": {c: str(t) for c, t in table.dtypes.items()},
         "config": to_jsonable(dataclasses.asdict(config))
