@@ -8,11 +8,13 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
+import pytest
 import typer
 from typer.testing import CliRunner
 
 from codesign_mb.cli import report as report_cli
 from codesign_mb.core.results import ResultsDir, write_results
+from codesign_mb.studies import fig_cn, fig_wifi_figures, sweep_figures, table_figures
 from codesign_mb.studies.report import ReportConfig, build_report, success_summary
 from codesign_mb.studies.sweep import SweepConfig, run_sweep
 
@@ -218,3 +220,61 @@ def test_cli_report(tmp_path: Path) -> None:
     defaults = {f.name: f.default for f in dataclasses.fields(ReportConfig)}
     assert f"[default: {defaults['dpi']}]" in help_text
     assert f"[default: {defaults['confidence']}]" in help_text
+
+
+def test_report_draws_with_the_studies_renderers(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Each figure has one renderer, the study's: the report calls it, it draws no copy."""
+    _write_all(tmp_path)
+    run_sweep(
+        SweepConfig(n_seeds=1, robot_counts=(1,), params={"horizon_steps": 10}),
+        tmp_path,
+        backend="serial",
+    )
+    calls: dict[str, list[Path]] = {}
+    for figure, module, name in (
+        ("tab_p", table_figures, "plot_pareto"),
+        ("fig_cn", fig_cn, "plot_fig_cn"),
+        ("fig_lat", table_figures, "plot_timeline"),
+        ("fig_wifi", fig_wifi_figures, "plot_capacity"),
+        ("sweep", sweep_figures, "plot_sweep"),
+    ):
+        real = getattr(module, name)
+
+        def spy(data, path, *args, _real=real, _figure=figure, **kwargs):
+            calls.setdefault(_figure, []).append(Path(path))
+            return _real(data, path, *args, **kwargs)
+
+        monkeypatch.setattr(module, name, spy)
+    report = build_report(tmp_path, config=ReportConfig(dpi=40))
+    assert {name: len(paths) for name, paths in calls.items()} == dict.fromkeys(
+        ("tab_p", "fig_cn", "fig_lat", "fig_wifi", "sweep"), 1
+    )
+    assert {name: paths[0] for name, paths in calls.items()} == report.figures
+
+
+def test_report_sums_mpc_failures(tmp_path: Path) -> None:
+    frame = pd.DataFrame(
+        {
+            "pipeline": ["model_based"] * 3 + ["learned"] * 3,
+            "policy": ["MPC + predictor"] * 3 + ["SAC + MLP"] * 3,
+            "success": [True, True, False, True, True, True],
+            "mean_requested_reliability": [1.0] * 6,
+            "mpc_failures": [1.0, 0.0, 4.0] + [np.nan] * 3,
+        }
+    )
+    write_results(tmp_path, table=frame, config=None, name="tab_p")
+    cn = pd.DataFrame(
+        {
+            "estimator": ["predictor"] * 4 + ["none"] * 4,
+            "latency_steps": [0, 0, 1, 1] * 2,
+            "success": [True] * 8,
+            "mpc_failures": [0, 1, 0, 2, 0, 0, 0, 0],
+        }
+    )
+    write_results(tmp_path, table=cn, config=None, name="fig_cn")
+    text = build_report(tmp_path, config=ReportConfig(dpi=40)).markdown.read_text()
+    assert "| model-based | MPC + predictor | 3 | 67% [21%, 94%] | 100% | 5 |" in text
+    assert "Failed MPC solves (summed over the episodes): predictor: 3; none: 0." in text
+    assert "| learned | SAC + MLP | 3 | 100% [44%, 100%] | 100% |  |" in text

@@ -273,10 +273,33 @@ def test_fig_cn_tiny_grid_and_plot(tmp_path) -> None:
     assert len(table) == 2 * (2 + 1)
     assert set(table["sweep"]) == {"delay", "reliability"}
     assert table.loc[table["sweep"] == "reliability", "latency_steps"].eq(1).all()
+    assert table["mpc_failures"].ge(0).all()  # the MPC's failed solves, summed per point
     png = plot_fig_cn(table, tmp_path / "fig.png")
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     with pytest.raises(ValueError, match="delays must be integers >= 0"):
         FigCnConfig(delays=(-1,))
+
+
+def test_cli_fig_cn_writes_table_and_figure(tmp_path) -> None:
+    import json
+
+    cfg = tmp_path / "fig_cn.toml"
+    cfg.write_text("[fig_cn]\nmax_steps = 8\nworkers = 1\n")
+    out = tmp_path / "fig_cn"
+    args = ["evaluate", "fig-cn", "-c", str(cfg), "-n", "1", "--delay", "0", "--belt-speed", "0.6"]
+    result = _cli([*args, "-q", "0.5", "-o", str(out), "--json"])
+    assert result.exit_code == 0, result.output
+    rows = json.loads(result.stdout)
+    assert [(r["sweep"], r["estimator"]) for r in rows] == [
+        ("delay", "predictor"),
+        ("reliability", "predictor"),
+        ("delay", "none"),
+        ("reliability", "none"),
+    ]
+    assert all(r["trials"] == 1 and r["mpc_failures"] >= 0 for r in rows)
+    for name in ("fig_cn.parquet", "fig_cn.csv", "fig_cn.json"):
+        assert (out / name).is_file()
+    assert (out / "fig_cn.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
 def test_demo_runs_the_robot_by_default(tmp_path) -> None:

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 from gymnasium.utils.env_checker import check_env
 
-from codesign_mb.adaptation.learned import ElapsedTimeFeature, LearnedQosPolicy, QosInterface
+from codesign_mb.adaptation.learned import ElapsedTimeFeature, LearnedQosPolicy
 from codesign_mb.control.sac import SacController
 from codesign_mb.control.scripted import ToyPickController
 from codesign_mb.core.registry import (
@@ -341,19 +341,6 @@ def test_stage_c_resume_continues(pipeline: dict[str, Path], tmp_path) -> None:
     state = json.loads((work / "state.json").read_text())
     assert [p["steps"] for p in state["curve"]] == [100, 200, 300]
     assert "lambda" in state["extra"]
-
-
-def test_qos_interface_and_features() -> None:
-    iface = QosInterface(remote_dim=2, feature_dim=1, learn_latency=True, max_latency_steps=4)
-    assert iface.request(np.array([1.0, -1.0])) == QosRequest(1.0, 0)
-    assert iface.request(np.array([-1.0, 1.0])) == QosRequest(0.0, 4)
-    feature = ElapsedTimeFeature(horizon=10)
-    obs = iface.observation(np.zeros(2), 5, feature(np.zeros(2), 5))
-    np.testing.assert_allclose(obs, [0, 0, 0.5, 0.0])
-    with pytest.raises(ValueError, match="extra features"):
-        iface.observation(np.zeros(2), 0)
-    with pytest.raises(ValueError, match="loss must be one of"):
-        QosEnvConfig(loss="nope")
 
 
 def test_stage_c_with_features_round_trips(tmp_path) -> None:

@@ -1,4 +1,5 @@
-"""The ``predictor_std`` QoS feature: the robot's predictor uncertainty, seen from the edge."""
+"""The learned QoS policy's inputs: ``predictor_std`` (the robot's predictor uncertainty,
+seen from the edge), the elapsed time and the interface."""
 
 from __future__ import annotations
 
@@ -9,9 +10,11 @@ import numpy as np
 import pytest
 
 from codesign_mb.adaptation.learned import (
+    ElapsedTimeFeature,
     LearnedQosPolicy,
     PredictorStdFeature,
     QosFeatures,
+    QosInterface,
     make_features,
 )
 from codesign_mb.core.registry import ComponentSpec, PlantSpec, make_plant
@@ -19,6 +22,7 @@ from codesign_mb.network import BernoulliLink
 from codesign_mb.network.qos import QosRequest
 from codesign_mb.rollout.compose import covariance_rule_on, predictor_replica_on
 from codesign_mb.stages.dual_ascent import DualAscent
+from codesign_mb.stages.qos_env import QosEnvConfig
 from codesign_mb.stages.stage_c import StageCConfig, make_qos_env, train_stage_c
 from codesign_mb.stages.training import SacSpec
 
@@ -157,3 +161,16 @@ def test_stage_c_with_predictor_std_round_trips(tmp_path) -> None:
     policy.reset()
     request = policy.request(make_plant(TOY).remote_prior(), 0)
     assert 0.0 <= request.reliability <= 1.0
+
+
+def test_qos_interface_and_features() -> None:
+    iface = QosInterface(remote_dim=2, feature_dim=1, learn_latency=True, max_latency_steps=4)
+    assert iface.request(np.array([1.0, -1.0])) == QosRequest(1.0, 0)
+    assert iface.request(np.array([-1.0, 1.0])) == QosRequest(0.0, 4)
+    feature = ElapsedTimeFeature(horizon=10)
+    obs = iface.observation(np.zeros(2), 5, feature(np.zeros(2), 5))
+    np.testing.assert_allclose(obs, [0, 0, 0.5, 0.0])
+    with pytest.raises(ValueError, match="extra features"):
+        iface.observation(np.zeros(2), 0)
+    with pytest.raises(ValueError, match="loss must be one of"):
+        QosEnvConfig(loss="nope")

@@ -52,3 +52,15 @@ def test_max_steps_caps_the_episode() -> None:
     table = rollout(env, PassThroughEstimator(), ToyPickController.from_env(env), seed=0,
                     max_steps=7)  # fmt: skip
     assert len(table) == 7 and list(table["t"]) == list(range(7))
+
+
+def test_ideal_control_does_not_overwrite_the_observation() -> None:
+    """The observer's y_t is what the link delivered, even when the controller sees the truth."""
+    env = _env(0.0, 1)  # nothing delivered: y_t stays the prior
+    seen: list[Transition] = []
+    rollout(env, None, ToyPickController.from_env(env), seed=4, observer=seen.append)
+    prior = env.unwrapped.remote_prior()
+    remote = env.remote_slice
+    for tr in seen:
+        np.testing.assert_array_equal(tr.observation[remote], prior)
+        assert not np.array_equal(tr.state[remote], prior)

@@ -15,6 +15,7 @@ from codesign_mb.cli import app
 from codesign_mb.core.registry import ComponentSpec
 from codesign_mb.studies.table import TableConfig, best_row, pareto_front, run_table
 from codesign_mb.studies.table_cost import CPU_COLUMNS, training_cost
+from codesign_mb.studies.table_figures import markdown_table
 from codesign_mb.studies.table_rows import PLANT_PRESETS, TablePlant, TableRow, stack_of
 
 TOY_TABLE = """
@@ -314,3 +315,40 @@ def test_cli_plant_option_names_the_presets(runner: CliRunner) -> None:
     result = runner.invoke(app, ["table", "--plant", "0.2", "--plant", "0.4"])
     assert result.exit_code == 2
     assert "plants[1] must be one of 0.2, 0.6, variable" in result.stderr
+
+
+def test_mpc_failures_are_summed_into_the_summary_and_its_markdown(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    import codesign_mb.studies.table as table_module
+
+    real = table_module.run_jobs
+
+    def first_row_has_an_mpc(jobs, **kwargs):
+        for j, episode in real(jobs, **kwargs):
+            if j == 0:  # the MPC's per-episode solver metrics (MpcController.episode_metrics)
+                episode = {
+                    **episode,
+                    "mpc_solves": 20.0,
+                    "mpc_failures": float(episode["episode"] + 2),
+                    "mpc_solve_ms_median": 1.0,
+                    "mpc_solve_ms_p99": 2.0,
+                    "mpc_solve_ms_max": 3.0,
+                }
+            yield j, episode
+
+    monkeypatch.setattr(table_module, "run_jobs", first_row_has_an_mpc)
+    toy, none = ComponentSpec("toy_pick"), ComponentSpec("none")
+    rows = tuple(
+        TableRow(name, toy, none, ComponentSpec("static", options={"reliability": q}))
+        for name, q in (("with an MPC", 1.0), ("without", 0.5))
+    )
+    plants = (TablePlant("toy", "toy", {"horizon": 20}),)
+    summary, _ = run_table(TableConfig(rows=rows, plants=plants, trials=3))
+    assert summary["mpc_failures"].iloc[0] == 2 + 3 + 4  # episodes 0, 1, 2
+    assert math.isnan(summary["mpc_failures"].iloc[1])
+    header, _, with_mpc, without = markdown_table(summary).splitlines()
+    column = header.split(" | ").index("MPC failures")
+    assert with_mpc.split(" | ")[column] == "9"
+    assert without.split(" | ")[column] == ""
+    assert "MPC failures" not in markdown_table(summary.iloc[1:])  # no MPC, no column

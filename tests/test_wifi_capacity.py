@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pandas as pd
 import pytest
 
 from codesign_mb.rollout.compose import covariance_rule_on
@@ -80,6 +81,23 @@ def test_capacity_runs_the_conveyor_with_mpc_predictor_and_both_qos(tmp_path):
     assert png.stat().st_size > 1000
     table = capacity_table(results)
     assert set(table.columns) >= {"success_rate", "capacity_robots", "trials"}
+    assert results["mpc_failures"].ge(0).all()  # the MPC's failed solves, per trial
+    assert table["mpc_failures"].sum() == results["mpc_failures"].sum()
+
+
+def test_capacity_table_sums_mpc_failures_over_trials():
+    results = pd.DataFrame(
+        [
+            {"channel": "paper", "scheduler": "greedy", "pipeline": p, "robots": 2, "trial": k,
+             "success_rate": 1.0, "mpc_failures": f}
+            for p, failures in (("mpc", (1, 2)), ("toy", (np.nan, np.nan)))
+            for k, f in enumerate(failures)
+        ]
+    )  # fmt: skip
+    table = capacity_table(results).set_index("pipeline")
+    assert table.loc["mpc", "mpc_failures"] == 3 and table.loc["mpc", "trials"] == 2
+    assert np.isnan(table.loc["toy", "mpc_failures"])  # no MPC in that pipeline
+    assert np.isnan(table.loc["mpc", "mean_reliability"])  # not in the results
 
 
 @pytest.mark.slow

@@ -1,7 +1,7 @@
 """The learned control-aware QoS policy of stage C (``eq_q_t_pol2``): a trained SB3 SAC actor.
 
 The agent's observation and action are fixed by a :class:`QosInterface`, shared by the
-training env (:class:`codesign_mb.stages.stage_c.QosAdaptationEnv`) and the deployed
+training env (:class:`codesign_mb.stages.qos_env.QosAdaptationEnv`) and the deployed
 :class:`LearnedQosPolicy`, so both see exactly the same numbers:
 
 * observation: ``(y_{t-1}, zeta_{t-1} / age_scale)`` (``eq_q_pol``), then the optional extra

@@ -102,8 +102,8 @@ class ClosedLoop:
     def _estimate(
         self, obs: NDArray[Any], info: dict[str, Any], action: NDArray[np.float64] | None
     ) -> NDArray[np.float64]:
-        if self.estimator is None:  # ideal control: the true remote state
-            state = np.asarray(obs[:-1], dtype=float)
+        if self.estimator is None:  # ideal control: the true remote state (a copy: obs is kept)
+            state = np.array(obs[:-1], dtype=float)
             state[self._remote] = info["remote_true"]
             return state
         if action is None:
@@ -145,6 +145,11 @@ class ClosedLoop:
         if not self.done:
             self._state = self._estimate(obs, next_info, action)
         return bool(terminated), bool(truncated), next_info
+
+    @property
+    def state(self) -> NDArray[np.float64] | None:
+        """What the controller is given next: the estimate (or the true state, ideal control)."""
+        return self._state
 
     def table(self) -> pd.DataFrame:
         """The per-step record: one row per control step (see :func:`rollout`)."""

@@ -168,8 +168,7 @@ class EpisodeRecorder:
         self.success = bool(info.get("success", False))
 
     def __call__(self, step: Transition) -> None:
-        # a copy: under ideal control the loop writes the truth into the observation it holds
-        self.networked.append(np.array(step.next_observation))
+        self.networked.append(step.next_observation)
         self.prev_actions.append(step.action)
         self.truth.append(step.info["remote_true"])
         self.reliability.append(step.info["qos_reliability"])
@@ -205,24 +204,13 @@ def collect_episodes(
     data = EpisodeData()
     for s in stage_seeds(seed, episodes):
         info = loop.reset(seed=s)
-        recorder.start(_delivered(loop, env), info)
+        assert loop.observation is not None
+        recorder.start(loop.observation, info)
         while not loop.done:
             loop.step()
         recorder.finish(data)
     env.close()
     return data
-
-
-def _delivered(loop: ClosedLoop, env: LinkObservationWrapper) -> NDArray[Any]:
-    """The reset's networked observation as the link delivered it.
-
-    Under ideal control :class:`ClosedLoop` writes the true remote state into the observation
-    it holds; the remote part is restored from the link's reception.
-    """
-    assert loop.observation is not None and env.last_reception is not None
-    observation = np.array(loop.observation)
-    observation[env.remote_slice] = env.last_reception.observation
-    return observation
 
 
 def estimator_mse(

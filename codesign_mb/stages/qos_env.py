@@ -114,24 +114,6 @@ class _ActionQos:
         return self.next
 
 
-class _LastEstimate:
-    """The robot's estimator, keeping its latest estimate (for the ``estimation_error`` loss)."""
-
-    def __init__(self, estimator: Estimator) -> None:
-        self.estimator = estimator
-        self.last: NDArray[np.float64] | None = None
-
-    def reset(self, observation: NDArray[np.float64]) -> NDArray[np.float64]:
-        self.last = self.estimator.reset(observation)
-        return self.last
-
-    def estimate(
-        self, observation: NDArray[np.float64], action: NDArray[np.float64]
-    ) -> NDArray[np.float64]:
-        self.last = self.estimator.estimate(observation, action)
-        return self.last
-
-
 class QosAdaptationEnv(gym.Env):
     """The QoS policy's MDP (``eq_q_t_pol2``) around a fixed controller and estimator.
 
@@ -176,8 +158,7 @@ class QosAdaptationEnv(gym.Env):
         self.wrapped = LinkObservationWrapper(plant, link or BernoulliLink(), self._qos, qos_cost)
         self.estimator = estimator
         self.controller = controller
-        self._estimates = _LastEstimate(estimator)
-        self.loop = ClosedLoop(self.wrapped, self._estimates, controller, record=False)
+        self.loop = ClosedLoop(self.wrapped, estimator, controller, record=False)
         self.features = features
         unwrapped = plant.unwrapped
         horizon = getattr(unwrapped, "horizon", None)
@@ -276,7 +257,7 @@ class QosAdaptationEnv(gym.Env):
             return float(done and not self._stats["success"])
         if kind == "distance":
             return float(info.get("gripper_object_distance", 0.0))
-        estimate = np.asarray(self._estimates.last)[self.wrapped.remote_slice]
+        estimate = np.asarray(self.loop.state)[self.wrapped.remote_slice]
         return float(np.linalg.norm(estimate - np.asarray(info["remote_true"])))
 
     def close(self) -> None:

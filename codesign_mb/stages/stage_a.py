@@ -196,6 +196,15 @@ def evaluate_ideal(
     return {"success_rate": float(np.mean(successes)), "mean_return": float(np.mean(returns))}
 
 
+_NOTES = (
+    "SB3 SAC on the perfect state (no HER): plant reward + potential-based distance "
+    "shaping + early-grip penalty; actor initialised by behaviour cloning of the "
+    "demonstrations, critic pre-trained with SB3 SAC updates (actor frozen), then SAC; "
+    "the shipped model is the best evaluation (see 'best' and curve.json). "
+    "wall_time_s counts the SAC chunks; setup_wall_time_s the rest."
+)
+
+
 def train_stage_a(
     config: StageAConfig,
     *,
@@ -248,15 +257,6 @@ def train_stage_a(
     )
     env.close()
     return {"env_steps": state.steps_done, "wall_time_s": state.wall_time_s, **final}
-
-
-_NOTES = (
-    "SB3 SAC on the perfect state (no HER): plant reward + potential-based distance "
-    "shaping + early-grip penalty; actor initialised by behaviour cloning of the "
-    "demonstrations, critic pre-trained with SB3 SAC updates (actor frozen), then SAC; "
-    "the shipped model is the best evaluation (see 'best' and curve.json). "
-    "wall_time_s counts the SAC chunks; setup_wall_time_s the rest."
-)
 
 
 def _shaped(config: StageAConfig, env: gym.Env) -> gym.Env:

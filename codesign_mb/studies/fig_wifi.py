@@ -382,8 +382,8 @@ def run_capacity(
         _run_point_kwargs, [((config, points[j]),) for j in order], workers=config.workers
     )
     ordered: list[dict[str, Any]] = [{}] * len(points)
-    rows = (row for _, row in _in_grid_order(stream, order, ordered))
-    for _ in progress(rows) if progress is not None else rows:
+    finished = (row for _, row in _in_grid_order(stream, order, ordered))
+    for _ in progress(finished) if progress is not None else finished:
         pass
     return pd.DataFrame(ordered)
 
@@ -417,7 +417,7 @@ def capacity_table(results: pd.DataFrame, *, success_target: float = 0.95) -> pd
             mean_reliability=("mean_reliability", "mean"),
             delivered_fraction=("delivered_fraction", "mean"),
             trials=("success_rate", "size"),
-            **sums,  # type: ignore[arg-type]
+            **sums,
         )
         .sort_values(keys)
     )

@@ -44,10 +44,11 @@ def capacity_curves(results: pd.DataFrame, *, success_target: float = 0.95) -> p
     keys = ["channel", "scheduler", "pipeline", "robots"]
     curves = capacity_table(results, success_target=success_target)
     grouped = results.groupby(keys)
-    if "band_low" in results and "band_high" in results:
-        band = grouped[["band_low", "band_high"]].mean()
-    else:
-        band = grouped["success_rate"].agg(band_low="min", band_high="max")
+    band: pd.DataFrame = (
+        grouped[["band_low", "band_high"]].mean()
+        if "band_low" in results and "band_high" in results
+        else grouped.agg(band_low=("success_rate", "min"), band_high=("success_rate", "max"))
+    )
     return curves.merge(band.reset_index(), on=keys)
 
 

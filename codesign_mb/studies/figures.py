@@ -15,7 +15,7 @@ paper's, solid; the model-based one dashed).
 from __future__ import annotations
 
 import io
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -79,7 +79,7 @@ def pipeline_label(pipeline: Any) -> str:
     return PIPELINE_LABEL.get(str(pipeline), str(pipeline))
 
 
-def curve_label(key: dict[str, Any], shown: Sequence[str]) -> str:
+def curve_label(key: Mapping[Any, Any], shown: Sequence[str]) -> str:
     """The legend entry of a curve: its values of the label columns ``shown``."""
     parts = [pipeline_label(key[c]) if c == "pipeline" else str(key[c]) for c in shown]
     return ", ".join(parts) if parts else "all"
@@ -110,7 +110,7 @@ class Styler:
         self.keys = [c for c in labels if c != "pipeline"]
         self.colors: dict[tuple[Any, ...], str] = {}
 
-    def __call__(self, key: dict[str, Any]) -> tuple[str, str]:
+    def __call__(self, key: Mapping[Any, Any]) -> tuple[str, str]:
         ident = tuple(key.get(c) for c in self.keys)
         color = self.colors.setdefault(ident, f"C{len(self.colors) % 10}")
         return color, PIPELINE_STYLE.get(str(key.get("pipeline")), "-")

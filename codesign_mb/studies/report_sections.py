@@ -231,16 +231,10 @@ def _failures(summary: pd.DataFrame, labels: list[str]) -> str:
         return ""
     shown = varying(summary, labels) if labels else []
     parts = []
-    for key, count in (
-        summary.groupby(labels or (lambda _: 0), sort=False, dropna=False)["mpc_failures"]
-        .sum(min_count=1)
-        .items()
-    ):
-        if not np.isfinite(count):
-            continue
-        key = key if isinstance(key, tuple) else (key,)
-        name = curve_label(dict(zip(labels, key, strict=True)), shown) if labels else "all"
-        parts.append(f"{name}: {int(count)}")
+    for key, rows in curves(summary, labels):
+        count = rows["mpc_failures"].astype(float).sum(min_count=1)
+        if np.isfinite(count):
+            parts.append(f"{curve_label(key, shown)}: {int(count)}")
     return "Failed MPC solves (summed over the episodes): " + "; ".join(parts) + ".\n\n"
 
 
@@ -424,6 +418,7 @@ def _capacity_points(summary: pd.DataFrame, labels: list[str]) -> pd.DataFrame:
 
 
 def render_sweep(name: str, frame: pd.DataFrame, out: Path, cfg: ReportConfig) -> Section:
+    """The section of the sweep table ``name``: ``cfg.metric`` versus the robot count."""
     try:
         summary = sweep_figures.sweep_summary(frame, cfg.metric)
     except ValueError:
@@ -446,3 +441,4 @@ RENDERERS: dict[str, Callable[[pd.DataFrame, Path, ReportConfig], Section]] = {
     "fig_lat": _render_fig_lat,
     "fig_wifi": _render_fig_wifi,
 }
+"""Known table name -> its section (figure and Markdown)."""

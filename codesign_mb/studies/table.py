@@ -436,11 +436,9 @@ def qos_timeline(
     if episodes.empty:
         return None
     mask = episodes["row"] == row.name
-    spec = plant
-    if isinstance(plant, TablePlant):
-        spec = plant.spec
-        if "plant" in episodes:
-            mask &= episodes["plant"] == plant.label
+    spec: PlantSpec = plant if isinstance(plant, PlantSpec) else plant.spec
+    if isinstance(plant, TablePlant) and "plant" in episodes:
+        mask &= episodes["plant"] == plant.label
     mine = episodes[mask & episodes["success"].astype(bool)]
     if mine.empty:
         return None

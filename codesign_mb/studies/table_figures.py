@@ -183,7 +183,7 @@ def plot_pareto(
         [*style.handles.values(), ring],
         [*style.handles.keys(), "Pareto-optimal (filled and ringed; dashed: the front)"],
         loc="outside lower center",
-        ncols=min(4, len(style.handles) + 1),
+        ncols=min(4, 2 * len(plants), len(style.handles) + 1),
         fontsize=7,
     )
     if title:
