@@ -21,6 +21,81 @@ from codesign_mb.plants.conveyor import ConveyorConfig, ConveyorPickPlace
 __all__ = ["bench_env"]
 
 
+def _episode(
+    env: ConveyorPickPlace,
+    policy: ScriptedPickController,
+    episode_seed: int,
+    record: list[np.ndarray] | None,
+) -> tuple[float, float, int]:
+    """One scripted episode: the wall and CPU time inside ``env.step``, and its steps.
+
+    With ``record``, the Python inner loop runs (the same torques) and each substep's
+    ``ctrl`` is kept, for the bare-physics replay.
+    """
+    sim = env.sim
+    bare_step = sim._mj_step2  # the second half of each physics step, after the torques
+    if record is not None:
+        sim.compiled = False
+        ctrl = sim.data.ctrl
+
+        def recording_step() -> None:
+            record.append(ctrl.copy())
+            bare_step()
+
+        sim._mj_step2 = recording_step
+    try:
+        obs, _ = env.reset(seed=episode_seed)
+        policy.reset(seed=episode_seed)
+        elapsed, cpu, steps, done = 0.0, 0.0, 0, False
+        while not done:
+            action = policy.act(obs)
+            c0, t0 = time.thread_time(), time.perf_counter()
+            obs, _, terminated, truncated, _ = env.step(action)
+            elapsed += time.perf_counter() - t0
+            cpu += time.thread_time() - c0
+            steps += 1
+            done = terminated or truncated
+    finally:
+        sim._mj_step2, sim.compiled = bare_step, True
+    return elapsed, cpu, steps
+
+
+def _replay(env: ConveyorPickPlace, episode_seed: int, controls: np.ndarray) -> tuple[float, float]:
+    """Bare ``mj_step`` calls on the recorded ``ctrl`` of an episode: wall and CPU time."""
+    import mujoco
+
+    env.reset(seed=episode_seed)
+    m, d = env.sim.model, env.sim.data
+    ctrl = d.ctrl
+    c0, t0 = time.thread_time(), time.perf_counter()
+    for u in controls:
+        ctrl[:] = u
+        mujoco.mj_step(m, d)
+    return time.perf_counter() - t0, time.thread_time() - c0
+
+
+def _one_repeat(
+    env: ConveyorPickPlace, policy: ScriptedPickController, seeds: list[int]
+) -> tuple[float, float, float, float]:
+    """Env and bare-physics rates (wall, CPU) of one repeat over the episodes of ``seeds``."""
+    recorded = []
+    for s in seeds:
+        controls: list[np.ndarray] = []
+        _episode(env, policy, s, controls)
+        recorded.append(np.array(controls))
+    elapsed = cpu = 0.0
+    steps = 0
+    for s in seeds:
+        e_wall, e_cpu, e_steps = _episode(env, policy, s, None)
+        elapsed, cpu, steps = elapsed + e_wall, cpu + e_cpu, steps + e_steps
+    p_wall = p_cpu = 0.0
+    for s, controls in zip(seeds, recorded, strict=True):
+        w, c = _replay(env, s, controls)
+        p_wall, p_cpu = p_wall + w, p_cpu + c
+    n_replayed = sum(len(c) for c in recorded) / env.config.n_substeps
+    return steps / elapsed, steps / cpu, n_replayed / p_wall, n_replayed / p_cpu
+
+
 def bench_env(*, repeats: int = 5, seed: int = 0, episodes: int = 1) -> dict[str, Any]:
     """Time ``env.step`` over ``repeats`` runs of ``episodes`` scripted episodes each.
 
@@ -44,73 +119,15 @@ def bench_env(*, repeats: int = 5, seed: int = 0, episodes: int = 1) -> dict[str
     config = ConveyorConfig()
     env = ConveyorPickPlace(config)
     policy = ScriptedPickController(config)
-    sim = env.sim
-    m, d = sim.model, sim.data
-    bare_step = sim._mj_step2  # the second half of each physics step, after the torques
     env.reset(seed=seed)
     env.step(np.zeros(4))  # compile the inner loop (numba) before timing
-
-    def episode(episode_seed: int, record: list[np.ndarray] | None) -> tuple[float, float, int]:
-        # One scripted episode; returns the wall and CPU time inside env.step and its steps.
-        # With record, the Python loop runs (same torques) and each substep's ctrl is kept.
-        if record is not None:
-            sim.compiled = False
-
-            def recording_step() -> None:
-                record.append(d.ctrl.copy())
-                bare_step()
-
-            sim._mj_step2 = recording_step
-        try:
-            obs, _ = env.reset(seed=episode_seed)
-            policy.reset(seed=episode_seed)
-            elapsed, cpu, steps, done = 0.0, 0.0, 0, False
-            while not done:
-                action = policy.act(obs)
-                c0, t0 = time.thread_time(), time.perf_counter()
-                obs, _, terminated, truncated, _ = env.step(action)
-                elapsed += time.perf_counter() - t0
-                cpu += time.thread_time() - c0
-                steps += 1
-                done = terminated or truncated
-        finally:
-            sim._mj_step2, sim.compiled = bare_step, True
-        return elapsed, cpu, steps
-
-    def replay(episode_seed: int, controls: np.ndarray) -> tuple[float, float]:
-        env.reset(seed=episode_seed)
-        ctrl = d.ctrl
-        c0, t0 = time.thread_time(), time.perf_counter()
-        for u in controls:
-            ctrl[:] = u
-            mujoco.mj_step(m, d)
-        return time.perf_counter() - t0, time.thread_time() - c0
-
-    rates: list[float] = []
-    cpu_rates: list[float] = []
-    physics_rates: list[float] = []
-    physics_cpu_rates: list[float] = []
-    for r in range(int(repeats)):
-        seeds = [seed + r * int(episodes) + e for e in range(int(episodes))]
-        recorded = []
-        for s in seeds:
-            controls: list[np.ndarray] = []
-            episode(s, controls)
-            recorded.append(np.array(controls))
-        elapsed = cpu = 0.0
-        steps = 0
-        for s in seeds:
-            e_wall, e_cpu, e_steps = episode(s, None)
-            elapsed, cpu, steps = elapsed + e_wall, cpu + e_cpu, steps + e_steps
-        p_wall = p_cpu = 0.0
-        for s, controls in zip(seeds, recorded, strict=True):
-            w, c = replay(s, controls)
-            p_wall, p_cpu = p_wall + w, p_cpu + c
-        n_replayed = sum(len(c) for c in recorded) / config.n_substeps
-        rates.append(steps / elapsed)
-        cpu_rates.append(steps / cpu)
-        physics_rates.append(n_replayed / p_wall)
-        physics_cpu_rates.append(n_replayed / p_cpu)
+    n = int(episodes)
+    per_repeat = [
+        _one_repeat(env, policy, [seed + r * n + e for e in range(n)]) for r in range(int(repeats))
+    ]
+    rates, cpu_rates, physics_rates, physics_cpu_rates = (
+        list(x) for x in zip(*per_repeat, strict=True)
+    )
     fractions = [e / p for e, p in zip(rates, physics_rates, strict=True)]
     env.close()
     return {

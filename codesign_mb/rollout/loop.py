@@ -234,9 +234,14 @@ def rollout(
 class SharedChannelLike(Protocol):
     """What :func:`rollout_shared` needs of a shared channel (``wifi.cell.SharedChannel``)."""
 
-    n: int
-    links: Sequence[Any]
-    step_order: Sequence[int]
+    @property
+    def n(self) -> int: ...
+
+    @property
+    def links(self) -> Sequence[Any]: ...
+
+    @property
+    def step_order(self) -> Sequence[int]: ...
 
     def reset(self, *, seed: int | None = None) -> None: ...
 
