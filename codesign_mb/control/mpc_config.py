@@ -9,7 +9,7 @@ import numpy as np
 
 __all__ = ["SOLVERS", "MpcConfig", "config_fields"]
 
-SOLVERS = ("qpoases", "osqp", "daqp")
+SOLVERS = ("qpoases", "osqp", "daqp", "daqp_native")
 """QP solvers of :attr:`MpcConfig.solver` (see :mod:`codesign_mb.control.mpc_qp`)."""
 
 
@@ -68,7 +68,9 @@ class MpcConfig:
     slack_linear, slack_quadratic:
         Penalties ``rho1, rho2`` on the slack of the soft constraints (plane and funnel).
     solver:
-        ``"qpoases"`` (default), ``"osqp"`` or ``"daqp"``.
+        ``"daqp_native"`` (default: DAQP on a workspace kept between solves, only the linear
+        term and the bounds updated, hot-started), or a ``casadi.conic`` plugin given the whole
+        QP every step: ``"qpoases"`` (hot-started), ``"daqp"`` or ``"osqp"`` (warm-started).
     """
 
     horizon: int = 15
@@ -99,7 +101,7 @@ class MpcConfig:
     weight_terminal: float = 5.0
     slack_linear: float = 1e3
     slack_quadratic: float = 1e4
-    solver: str = "qpoases"
+    solver: str = "daqp_native"
 
     def __post_init__(self) -> None:
         for name in ("horizon", "close_steps"):
