@@ -81,7 +81,7 @@ def test_bench_mpc_on_recorded_problems() -> None:
     from codesign_mb.bench.mpc import bench_mpc
 
     result = bench_mpc(repeats=1, seed=0, solvers=("qpoases", "daqp"), episodes_per_speed=1)
-    assert result["solver"] == "qpoases" and result["problems"] == 200
-    assert [s["solver"] for s in result["solvers"]] == ["qpoases", "daqp"]
+    assert result["solver"] == "daqp_native" and result["problems"] == 200
+    assert [s["solver"] for s in result["solvers"]] == ["daqp_native", "qpoases", "daqp"]
     assert all(s["failures"] == 0 for s in result["solvers"])
     assert 0 < result["median_ms"] <= result["p99_ms"] <= result["max_ms"]

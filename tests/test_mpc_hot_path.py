@@ -1,8 +1,10 @@
 """The MPC's hot path (QP data written in place, solver called through its buffer) equals the
-old path (``qp_data`` dicts through ``casadi.Function.call``) on random and recorded problems."""
+old path (``qp_data`` dicts through ``casadi.Function.call``) on random and recorded problems;
+DAQP on its kept workspace (``"daqp_native"``, the default) gives qpOASES' solutions."""
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Any
 
 import numpy as np
@@ -111,12 +113,16 @@ def test_hot_path_data_equals_qp_data() -> None:
         np.testing.assert_array_equal(uba, data["uba"])
 
 
-def test_hot_path_equals_function_call_on_recorded_episodes() -> None:
+@pytest.mark.parametrize("solver", ["qpoases", "daqp_native"])
+def test_hot_path_equals_function_call_on_recorded_episodes(solver: str) -> None:
     from codesign_mb.bench.mpc import record_problems
 
     problems, args = record_problems(episodes_per_speed=1)
-    qp = MpcQp(args["config"], dt=args["dt"], max_speed_mps=args["max_speed_mps"])
-    ref = ReferenceQp(MpcQp(args["config"], dt=args["dt"], max_speed_mps=args["max_speed_mps"]))
+    assert args["config"].solver == "daqp_native"  # the default records the problems
+    config = dataclasses.replace(args["config"], solver=solver)
+    reference = dataclasses.replace(args["config"], solver="qpoases")
+    qp = MpcQp(config, dt=args["dt"], max_speed_mps=args["max_speed_mps"])
+    ref = ReferenceQp(MpcQp(reference, dt=args["dt"], max_speed_mps=args["max_speed_mps"]))
     for episode in problems:
         qp.reset()
         ref.reset()
@@ -124,7 +130,43 @@ def test_hot_path_equals_function_call_on_recorded_episodes() -> None:
             ok, x = ref.solve(theta)
             sol = qp.solve(theta)
             assert ok and sol.success
-            np.testing.assert_array_equal(sol.commands.ravel(), x[: 3 * qp.n])
+            if solver == "qpoases":
+                np.testing.assert_array_equal(sol.commands.ravel(), x[: 3 * qp.n])
+            else:  # another active-set solver: the same vertex, to rounding
+                np.testing.assert_allclose(sol.commands.ravel(), x[: 3 * qp.n], atol=1e-12)
+                assert sol.slack == pytest.approx(x[3 * qp.n], abs=1e-12)
+
+
+def test_native_daqp_equals_qpoases_on_random_parameters() -> None:
+    cfg = MpcConfig(workspace_low=LOW, workspace_high=HIGH, solver="daqp_native")
+    qp = MpcQp(cfg, dt=0.04, max_speed_mps=1.0)
+    reference = dataclasses.replace(cfg, solver="qpoases")
+    ref = ReferenceQp(MpcQp(reference, dt=0.04, max_speed_mps=1.0))
+    rng = np.random.default_rng(3)
+    outcomes = []
+    for _ in range(200):  # one hot-started sequence, failures (and resets) included
+        theta = _random_theta(qp, rng)
+        ok, x = ref.solve(theta)
+        sol = qp.solve(theta)
+        outcomes.append(ok)
+        assert sol.success == ok, sol.status
+        if ok:
+            np.testing.assert_allclose(sol.commands.ravel(), x[: 3 * qp.n], atol=1e-9)
+        else:
+            assert not sol.commands.any()
+    assert 0 < sum(outcomes) < len(outcomes)  # both outcomes were exercised
+
+
+def test_native_daqp_reset_forgets_the_working_set() -> None:
+    cfg = MpcConfig(workspace_low=LOW, workspace_high=HIGH, solver="daqp_native")
+    qp = MpcQp(cfg, dt=0.04, max_speed_mps=1.0)
+    rng = np.random.default_rng(6)
+    thetas = [_random_theta(qp, rng) for _ in range(30)]
+    first = [qp.solve(t).commands.copy() for t in thetas]
+    qp.reset()
+    again = [qp.solve(t).commands.copy() for t in thetas]
+    for a, b in zip(first, again, strict=True):
+        np.testing.assert_array_equal(a, b)
 
 
 def test_parameters_written_in_place_equal_pack() -> None:

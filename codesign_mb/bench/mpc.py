@@ -109,7 +109,7 @@ def bench_mpc(
     *,
     repeats: int = 20,
     seed: int = 0,
-    solvers: tuple[str, ...] = ("qpoases", "daqp", "osqp"),
+    solvers: tuple[str, ...] = ("daqp_native", "qpoases", "daqp", "osqp"),
     episodes_per_speed: int = 2,
 ) -> dict[str, Any]:
     """Median and p99 MPC solve time on recorded problems, per QP solver.

@@ -1,0 +1,175 @@
+"""Settings of the conveyor MPC (:class:`MpcConfig`), validated in one place."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, fields
+
+import numpy as np
+
+__all__ = ["SOLVERS", "MpcConfig", "config_fields"]
+
+SOLVERS = ("qpoases", "osqp", "daqp", "daqp_native")
+"""QP solvers of :attr:`MpcConfig.solver` (see :mod:`codesign_mb.control.mpc_qp`)."""
+
+
+@dataclass(frozen=True)
+class MpcConfig:
+    """Settings of :class:`MpcController` (lengths in m, times in s).
+
+    Parameters
+    ----------
+    horizon:
+        Prediction horizon ``N`` in control steps (10-25 is sensible at 40 ms).
+    lag_time_constant_s:
+        Time constant ``T`` of the gripper velocity's response to the command (0: none).
+    position_blend:
+        With ``T = 0``: share of a step travelled at the previous velocity (see
+        :func:`lag_discretisation`). The defaults are identified from the plant's
+        operational-space loop, whose velocity reference slews at 12 m/s^2: the TCP velocity
+        reaches a command within one 40 ms step, on a ramp.
+    max_accel_mps2:
+        Bound on the predicted gripper acceleration, per axis.
+    speed_fraction:
+        Fraction of the plant's maximum Cartesian speed the MPC may command, in (0, 1].
+    workspace_low, workspace_high:
+        Corners of the box the gripper must stay in, world frame; ``None``: the plant's box
+        shrunk by :attr:`workspace_margin_m` (:meth:`MpcController.from_env`).
+    workspace_margin_m:
+        How far inside the plant's workspace box the MPC's box lies.
+    funnel_slope:
+        ``c``: height gained per metre of lateral offset from the object (approach funnel).
+    clearance_m:
+        Height of the clearance plane above the grasp point while not aligned (APPROACH).
+    hover_height_m:
+        Height of the APPROACH reference above the grasp point.
+    grasp_offset_m:
+        Gripper position minus object position at the grasp (world frame, e.g. the fingertip
+        centre slightly above the object's centre).
+    lift_height_m:
+        How far the LIFT reference rises above where the gripper closed.
+    align_tolerance_m:
+        Lateral error below which APPROACH becomes DESCEND.
+    abort_tolerance_m:
+        Lateral error above which DESCEND returns to APPROACH (in between, the funnel keeps
+        the gripper high enough while it re-aligns).
+    grasp_tolerance_m, grasp_height_tolerance_m:
+        Lateral and vertical distances to the grasp point below which the fingers close.
+    funnel_apex_depth_m:
+        How far below the grasp point the funnel's apex lies: room for the last centimetre
+        of the descent despite a small lateral error (perception noise).
+    close_steps:
+        Steps the fingers get to close before LIFT.
+    min_grip_width_m:
+        A finger width below this after closing means the grasp missed (back to APPROACH).
+    weight_position, weight_height, weight_velocity, weight_command, weight_rate, weight_terminal:
+        Cost weights: lateral and vertical position error, velocity tracking, command
+        deviation from the feed-forward, command rate, terminal multiplier.
+    slack_linear, slack_quadratic:
+        Penalties ``rho1, rho2`` on the slack of the soft constraints (plane and funnel).
+    solver:
+        ``"daqp_native"`` (default: DAQP on a workspace kept between solves, only the linear
+        term and the bounds updated, hot-started), or a ``casadi.conic`` plugin given the whole
+        QP every step: ``"qpoases"`` (hot-started), ``"daqp"`` or ``"osqp"`` (warm-started).
+    """
+
+    horizon: int = 15
+    lag_time_constant_s: float = 0.0
+    position_blend: float = 0.25
+    max_accel_mps2: float = 10.0
+    speed_fraction: float = 1.0
+    workspace_low: tuple[float, float, float] | None = None
+    workspace_high: tuple[float, float, float] | None = None
+    workspace_margin_m: float = 0.005
+    funnel_slope: float = 1.5
+    clearance_m: float = 0.04
+    hover_height_m: float = 0.06
+    grasp_offset_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    lift_height_m: float = 0.15
+    align_tolerance_m: float = 0.01
+    abort_tolerance_m: float = 0.04
+    grasp_tolerance_m: float = 0.012
+    grasp_height_tolerance_m: float = 0.015
+    funnel_apex_depth_m: float = 0.015
+    close_steps: int = 5
+    min_grip_width_m: float = 0.005
+    weight_position: float = 100.0
+    weight_height: float = 100.0
+    weight_velocity: float = 1.0
+    weight_command: float = 0.1
+    weight_rate: float = 1.0
+    weight_terminal: float = 5.0
+    slack_linear: float = 1e3
+    slack_quadratic: float = 1e4
+    solver: str = "daqp_native"
+
+    def __post_init__(self) -> None:
+        for name in ("horizon", "close_steps"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int | np.integer):
+                raise ValueError(f"{name} must be an integer, got {value!r}")
+        if not 2 <= self.horizon <= 100:
+            raise ValueError(f"horizon must be in [2, 100], got {self.horizon}")
+        if self.close_steps < 0:
+            raise ValueError(f"close_steps must be >= 0, got {self.close_steps}")
+        for name in ("workspace_low", "workspace_high", "grasp_offset_m"):
+            if getattr(self, name) is None and name != "grasp_offset_m":
+                continue
+            value = tuple(float(v) for v in getattr(self, name))
+            if len(value) != 3 or not all(math.isfinite(v) for v in value):
+                raise ValueError(f"{name} must be 3 finite numbers, got {getattr(self, name)!r}")
+            object.__setattr__(self, name, value)
+        if (self.workspace_low is None) != (self.workspace_high is None):
+            raise ValueError("workspace_low and workspace_high must be given together")
+        if self.workspace_low is not None and any(
+            lo >= hi for lo, hi in zip(self.workspace_low, self.workspace_high, strict=True)
+        ):
+            raise ValueError(
+                f"workspace_low must be < workspace_high, got {self.workspace_low} and "
+                f"{self.workspace_high}"
+            )
+        if not 0.0 <= self.position_blend <= 1.0:
+            raise ValueError(f"position_blend must be in [0, 1], got {self.position_blend}")
+        if not 0.0 < self.speed_fraction <= 1.0:
+            raise ValueError(f"speed_fraction must be in (0, 1], got {self.speed_fraction}")
+        positive = (
+            "max_accel_mps2",
+            "align_tolerance_m",
+            "abort_tolerance_m",
+            "grasp_tolerance_m",
+            "grasp_height_tolerance_m",
+        )
+        non_negative = (
+            "lag_time_constant_s",
+            "workspace_margin_m",
+            "funnel_slope",
+            "funnel_apex_depth_m",
+            "clearance_m",
+            "hover_height_m",
+            "lift_height_m",
+            "min_grip_width_m",
+            "weight_position",
+            "weight_height",
+            "weight_velocity",
+            "weight_command",
+            "weight_terminal",
+            "slack_linear",
+            "slack_quadratic",
+        )
+        for name in positive:
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0):
+                raise ValueError(f"{name} must be > 0, got {value}")
+        for name in non_negative:
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0):
+                raise ValueError(f"{name} must be >= 0, got {value}")
+        if not (math.isfinite(self.weight_rate) and self.weight_rate > 0):
+            raise ValueError(f"weight_rate must be > 0, got {self.weight_rate}")
+        if self.solver not in SOLVERS:
+            raise ValueError(f"solver must be one of {', '.join(SOLVERS)}, got {self.solver!r}")
+
+
+def config_fields() -> list[str]:
+    """Names of :class:`MpcConfig`'s fields (for CLIs and docs)."""
+    return [f.name for f in fields(MpcConfig)]

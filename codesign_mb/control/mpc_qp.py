@@ -1,0 +1,525 @@
+"""The conveyor MPC's parametric QP (:class:`MpcQp`): built once in CasADi, re-solved each step.
+
+Model (per Cartesian axis, control period ``dt``)
+-------------------------------------------------
+The arm's low-level operational-space loop (:mod:`codesign_mb.robot.osc`) makes the gripper
+velocity ``v`` follow the commanded Cartesian velocity ``u``. Identified on the plant with
+step commands: the TCP velocity reaches the command within one 40 ms step (the reference
+slews at 12 m/s^2), on a ramp, so the model is::
+
+    v[k+1] = u[k]
+    p[k+1] = p[k] + dt (beta v[k] + (1 - beta) u[k])        (beta = 0.25)
+
+and, more generally (:func:`lag_discretisation`), the exact discretisation of a first-order lag
+of time constant ``T`` (:attr:`MpcConfig.lag_time_constant_s`), ``a = exp(-dt / T)``::
+
+    v[k+1] = a v[k] + (1 - a) u[k]
+    p[k+1] = p[k] + T (1 - a) v[k] + (dt - T (1 - a)) u[k]
+
+The object moves with the belt at a constant velocity ``w``: ``o[k] = o[0] + k dt w``.
+Everything is linear, so the finite-horizon problem is a convex QP; the object's predicted
+path only enters the QP's linear term and constraint bounds.
+
+QP over the horizon ``N`` (decision ``U = (u[0], ..., u[N-1])`` and one slack ``s >= 0``)::
+
+    min  sum_k |p[k] - r[k]|^2_Q + |v[k] - vr[k]|^2_Qv + |u[k] - vr[k]|^2_R
+         + |u[k] - u[k-1]|^2_S + rho1 s + rho2 s^2
+    s.t. |u[k]| <= v_max                                   (velocity, hard, per axis)
+         |v[k+1] - v[k]| <= a_max dt                       (acceleration, hard)
+         lo[k] <= p[k] <= hi[k], k = 1..N                  (workspace box, hard)
+         z[k] + s >= c[k]                                  (clearance plane, soft)
+         z[k] - c |x[k] - ox[k]| + s >= h[k]  (same in y)  (approach funnel, soft)
+
+The workspace box ``[lo, hi]`` is widened, where needed, to the path of a maximal braking from
+the measured state, so a gripper outside it or too fast to stop inside it (pushed by a contact,
+or at the end of its reach) still has a feasible problem that brings it back; only a measured
+speed beyond ``v_max + a_max dt`` makes the QP infeasible, and then the controller falls back to
+a safe command (stop, or a bounded push back into the box) and counts the failure.
+
+Approach from above: until the gripper is aligned with the object, the *clearance plane*
+``c[k]`` (the grasp point plus a clearance) keeps it above the object; once aligned, the
+*approach funnel* (the pyramid of slope ``c`` with its apex ``h[k]`` at the grasp point)
+lets it come down only as long as it stays laterally on the object. Each is linear (four
+faces per step for the funnel), so the problem stays a QP; a bound of ``-inf``-like value
+switches one off. The Hessian and the constraint matrix are constant (the weights do not
+depend on the phase): only the linear term and the bounds change from step to step.
+
+Why an active-set QP solver, and why DAQP on its own workspace
+--------------------------------------------------------------
+The model is linear and the constraints are polyhedral, so the problem is a small, dense,
+strictly convex QP (3N + 1 variables, 11N constraints: 46 and 165 at N = 15); an NLP solver
+(IPOPT, FATROP) would only add overhead and iterations. Active-set methods (qpOASES, DAQP)
+suit parametric MPC: started from the previous step's active set, most steps take zero to a
+few iterations, and their solutions are exact vertices (bounds respected to machine
+precision, where an ADMM solver such as OSQP stops at a tolerance and needs polishing).
+Through ``casadi.conic`` every solver is handed the whole QP each step and redoes its matrix
+setup, although ``H`` and ``A`` never change. The default, ``"daqp_native"``, calls DAQP
+directly on a workspace set up once per episode
+(:class:`~codesign_mb.control.daqp_workspace.DaqpWorkspace`): a step updates the linear term
+and the bounds and hot-starts from the last working set. On the recorded closed-loop
+problems it gives qpOASES' solutions to about 1e-15 in a third of its time (whole
+:meth:`MpcQp.solve`: about 35 us against 90-110 us of CPU, ``codesign bench mpc``). The
+CasADi plugins stay selectable through :attr:`MpcConfig.solver`: qpOASES (hot start), DAQP
+and OSQP (warm start from the shifted previous solution).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import math
+import sys
+import time
+from collections.abc import Iterator, Mapping
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from codesign_mb.control.conic_buffer import ConicBuffer
+from codesign_mb.control.daqp_workspace import DAQP_STATUS, DaqpWorkspace
+from codesign_mb.control.mpc_config import MpcConfig
+from codesign_mb.control.mpc_kernels import stopping_bounds, worst_violation
+
+__all__ = ["OFF", "MpcQp", "MpcSolution", "lag_discretisation"]
+
+NATIVE_DAQP = "daqp_native"
+"""The solver name of DAQP called directly (:class:`DaqpWorkspace`), not through CasADi."""
+_SUCCESS_STATUS = {"qpoases": "Successful return."}
+"""What a solver's ``return_status`` says on success, when it is known without asking."""
+
+FEASIBILITY_TOL = 1e-5
+"""Largest violation of a hard bound a solution may have (a solver's "success" is not trusted)."""
+
+OFF = 1e3
+"""A constraint whose lower bound is ``-OFF`` metres is inactive."""
+
+
+def lag_discretisation(
+    dt: float, lag_time_constant_s: float, position_blend: float = 0.0
+) -> tuple[float, float, float]:
+    """``(a, bp_v, bp_u)`` of the model ``v+ = a v + (1 - a) u``, ``p+ = p + bp_v v + bp_u u``.
+
+    With ``T > 0`` it is the exact discretisation of a first-order lag of time constant ``T``.
+    With ``T = 0`` the velocity reaches the command within the step, and ``position_blend``
+    ``beta`` is the share of the step travelled at the old velocity:
+    ``p+ = p + dt (beta v + (1 - beta) u)`` (a ramp between them gives ``beta`` near 1/2 for a
+    ramp lasting the whole step, 0 for an instant change).
+    """
+    if lag_time_constant_s <= 0.0:
+        return 0.0, position_blend * dt, (1.0 - position_blend) * dt
+    a = math.exp(-dt / lag_time_constant_s)
+    bp_v = lag_time_constant_s * (1.0 - a)
+    return a, bp_v, dt - bp_v
+
+
+@dataclass
+class MpcSolution:
+    """One solve: the command sequence ``(N, 3)``, success, the solver's wall and CPU time."""
+
+    commands: NDArray[np.float64]
+    success: bool
+    status: str
+    solve_time_s: float
+    slack: float = 0.0
+    cpu_time_s: float = 0.0
+
+
+class MpcQp:
+    """The MPC's parametric QP, built once with CasADi.
+
+    The parameter vector ``theta`` (:meth:`pack`) holds the measured gripper position and
+    velocity, the previous command, and per horizon step the position reference, the velocity
+    reference (also the command's feed-forward), the funnel apex ``(ox, oy, h)`` and the
+    clearance plane's height. The QP data
+    are affine in ``theta``: ``g = G theta + g0``, bounds ``= const - (B theta + b0)``; the
+    Hessian ``H`` and the constraint matrix ``A`` are constant. :meth:`solve` evaluates these
+    maps (numpy products, the rest compiled in :mod:`~codesign_mb.control.mpc_kernels`)
+    straight into the solver's arrays: those of the kept DAQP workspace
+    (:class:`~codesign_mb.control.daqp_workspace.DaqpWorkspace`, ``"daqp_native"``: ``H`` and
+    ``A`` set up once per episode, hot start from the last working set), or those bound to a
+    ``casadi.conic`` solver's buffer (:class:`~codesign_mb.control.conic_buffer.ConicBuffer`;
+    warm start from qpOASES' hot start, or the shifted previous solution for OSQP/DAQP);
+    :meth:`qp_data` is the same data as a dict.
+
+    Parameters
+    ----------
+    config:
+        Horizon, weights, limits, solver.
+    dt:
+        Control period in s.
+    max_speed_mps:
+        The plant's Cartesian speed that ``|action| = 1`` commands; bounds ``|u|`` with
+        :attr:`MpcConfig.speed_fraction`.
+    """
+
+    def __init__(self, config: MpcConfig, *, dt: float, max_speed_mps: float) -> None:
+        if not (math.isfinite(dt) and dt > 0):
+            raise ValueError(f"dt must be > 0, got {dt}")
+        if not (math.isfinite(max_speed_mps) and max_speed_mps > 0):
+            raise ValueError(f"max_speed_mps must be > 0, got {max_speed_mps}")
+        if config.workspace_low is None:
+            raise ValueError(
+                "workspace_low/workspace_high are not set: give them in MpcConfig or build "
+                "the controller with MpcController.from_env"
+            )
+        self.config = config
+        self.dt = float(dt)
+        self.v_max = float(max_speed_mps) * config.speed_fraction
+        self.n = config.horizon
+        self.n_theta = 9 + 10 * self.n
+        self.n_var = 3 * self.n + 1
+        self._build()
+        self._solver: Any = None
+        self._workspace: DaqpWorkspace | None = None
+        self.reset()
+
+    # -- construction -------------------------------------------------------------------
+    def _symbolic(self, ca: Any, theta: Any, w: Any) -> tuple[Any, Any]:
+        """The cost and the constraint expressions of the QP (module docstring), in CasADi."""
+        cfg, n = self.config, self.n
+        a, bp_v, bp_u = lag_discretisation(self.dt, cfg.lag_time_constant_s, cfg.position_blend)
+        p, v, u_prev = theta[0:3], theta[3:6], theta[6:9]
+        ref = ca.reshape(theta[9 : 9 + 3 * n], 3, n)
+        vref = ca.reshape(theta[9 + 3 * n : 9 + 6 * n], 3, n)
+        apex = ca.reshape(theta[9 + 6 * n : 9 + 9 * n], 3, n)
+        plane = theta[9 + 9 * n : 9 + 10 * n]
+        U = ca.reshape(w[: 3 * n], 3, n)
+        s = w[3 * n]
+        q_pos = ca.diag(ca.DM([cfg.weight_position, cfg.weight_position, cfg.weight_height]))
+        cost = cfg.slack_linear * s + cfg.slack_quadratic * s**2
+        acc, pos, funnel, clearance = [], [], [], []
+        u_last = u_prev
+        c = cfg.funnel_slope
+        for k in range(n):
+            uk = U[:, k]
+            v_next = a * v + (1 - a) * uk
+            p = p + bp_v * v + bp_u * uk
+            acc.append(v_next - v)
+            v = v_next
+            pos.append(p)
+            e = p - ref[:, k]
+            terminal = cfg.weight_terminal if k == n - 1 else 1.0
+            cost += terminal * ca.bilin(q_pos, e, e)
+            cost += terminal * cfg.weight_velocity * ca.sumsqr(v - vref[:, k])
+            cost += cfg.weight_command * ca.sumsqr(uk - vref[:, k])
+            cost += cfg.weight_rate * ca.sumsqr(uk - u_last)
+            u_last = uk
+            dx = p[0] - apex[0, k]
+            dy = p[1] - apex[1, k]
+            rel = p[2] - apex[2, k] + s
+            funnel.extend([rel - c * dx, rel + c * dx, rel - c * dy, rel + c * dy])
+            clearance.append(p[2] + s - plane[k])
+        return cost, ca.vertcat(*acc, *pos, *funnel, *clearance)
+
+    def _build(self) -> None:
+        import casadi as ca
+
+        cfg, n, dt = self.config, self.n, self.dt
+        a, bp_v, bp_u = lag_discretisation(dt, cfg.lag_time_constant_s, cfg.position_blend)
+        theta = ca.SX.sym("theta", self.n_theta)
+        w = ca.SX.sym("w", self.n_var)
+        cost, g = self._symbolic(ca, theta, w)
+        self.n_con = g.shape[0]
+        # Split everything into its constant and theta-affine parts, numerically, once.
+        H = ca.hessian(cost, w)[0]
+        grad0 = ca.substitute(ca.gradient(cost, w), w, ca.DM.zeros(self.n_var))
+        A = ca.jacobian(g, w)
+        g_off = ca.substitute(g, w, ca.DM.zeros(self.n_var))
+        maps = ca.Function(
+            "maps",
+            [theta],
+            [H, A, ca.jacobian(grad0, theta), ca.jacobian(g_off, theta)],
+        )
+        zero = ca.DM.zeros(self.n_theta)
+        H_num, A_num, G_num, B_num = (np.array(ca.DM(m)) for m in maps(zero))
+        offsets = ca.Function("offsets", [theta], [grad0, g_off])
+        g0, b0 = (np.array(m).ravel() for m in offsets(zero))
+        self.H = H_num
+        self.A = A_num
+        self.G, self.g0 = G_num, g0
+        self.B, self.b0 = B_num, b0
+        self._H_dm = ca.DM(H_num)
+        self._A_dm = ca.DM(A_num)
+        acc_bound = cfg.max_accel_mps2 * dt
+        self._model = (a, bp_v, bp_u)
+        self._acc_bound = acc_bound
+        self._ws_low, self._ws_high = np.asarray(cfg.workspace_low), np.asarray(cfg.workspace_high)
+        lo = np.array(cfg.workspace_low)
+        hi = np.array(cfg.workspace_high)
+        self.con_low = np.concatenate([np.full(3 * n, -acc_bound), np.tile(lo, n), np.zeros(5 * n)])
+        self.con_high = np.concatenate(
+            [np.full(3 * n, acc_bound), np.tile(hi, n), np.full(5 * n, np.inf)]
+        )
+        self.var_low = np.concatenate([np.full(3 * n, -self.v_max), [0.0]])
+        self.var_high = np.concatenate([np.full(3 * n, self.v_max), [np.inf]])
+        # Constraint row blocks, for tests and diagnostics.
+        self.rows = {
+            "acceleration": slice(0, 3 * n),
+            "workspace": slice(3 * n, 6 * n),
+            "funnel": slice(6 * n, 10 * n),
+            "clearance": slice(10 * n, 11 * n),
+        }
+        self._ca = ca
+        # Work arrays of the hot path (solve), allocated once.
+        self._k_step = np.arange(n + 1)[:, None] * (acc_bound / (1.0 - a))  # k * step, k = 0..N
+        self._offset = np.empty(self.n_con)
+        self._low = self.con_low.copy()
+        self._high = self.con_high.copy()
+        self._ax = np.empty(self.n_con)
+
+    def _make_solver(self) -> Any:
+        with _quiet_stdout():  # qpOASES prints its licence banner on every instance
+            return self._make_solver_loud()
+
+    def _make_solver_loud(self) -> Any:
+        ca = self._ca
+        name = self.config.solver
+        spec = {"h": self._H_dm.sparsity(), "a": self._A_dm.sparsity()}
+        opts: dict[str, Any] = {"error_on_fail": False}
+        if name == "qpoases":
+            opts.update(printLevel="none", sparse=False, hessian_type="posdef")
+        elif name == "osqp":
+            opts["osqp"] = {
+                "verbose": False,
+                "eps_abs": 1e-6,
+                "eps_rel": 1e-6,
+                "polishing": True,
+                "max_iter": 10000,
+            }
+        elif name == "daqp":
+            opts["daqp"] = {}
+        return ca.conic("mpc_qp", name, spec, opts)
+
+    def reset(self) -> None:
+        """Forget the warm start: a fresh solver instance, so episodes do not depend on history."""
+        if self.config.solver == NATIVE_DAQP:  # H and A set up at the first solve
+            if self._workspace is None:
+                self._workspace = DaqpWorkspace(self.H, self.A)
+                self._workspace.lower_x[:] = self.var_low
+                self._workspace.upper_x[:] = self.var_high
+            self._workspace.reset()
+            return
+        self._solver = self._make_solver()
+        self._warm_inputs = self.config.solver != "qpoases"
+        self._x0 = np.zeros(self.n_var)
+        self._lam_x0 = np.zeros(self.n_var)
+        self._lam_a0 = np.zeros(self.n_con)
+        with _quiet_stdout():  # a new solver memory: qpOASES prints its banner again
+            self._conic = ConicBuffer(
+                self._solver, {"h": self._H_dm.nonzeros(), "a": self._A_dm.nonzeros()}
+            )
+        self._conic.inputs["lbx"][:] = self.var_low
+        self._conic.inputs["ubx"][:] = self.var_high
+
+    # -- runtime ------------------------------------------------------------------------
+    def pack(
+        self,
+        position: NDArray[np.float64],
+        velocity: NDArray[np.float64],
+        previous_command: NDArray[np.float64],
+        reference: NDArray[np.float64],
+        velocity_reference: NDArray[np.float64],
+        apex: NDArray[np.float64],
+        plane: NDArray[np.float64] | float = -OFF,
+    ) -> NDArray[np.float64]:
+        """The parameter vector ``theta``.
+
+        ``reference``, ``velocity_reference`` and ``apex`` have shape ``(N, 3)``; ``plane`` has
+        shape ``(N,)`` or is a scalar. An apex height or plane of ``-OFF`` switches it off.
+        """
+        n = self.n
+        parts = [
+            np.asarray(position, dtype=float).reshape(3),
+            np.asarray(velocity, dtype=float).reshape(3),
+            np.asarray(previous_command, dtype=float).reshape(3),
+            np.asarray(reference, dtype=float).reshape(n, 3).ravel(),
+            np.asarray(velocity_reference, dtype=float).reshape(n, 3).ravel(),
+            np.asarray(apex, dtype=float).reshape(n, 3).ravel(),
+            np.broadcast_to(np.asarray(plane, dtype=float), (n,)),
+        ]
+        return np.concatenate(parts)
+
+    def qp_data(self, theta: NDArray[np.float64]) -> dict[str, NDArray[np.float64]]:
+        """The QP ``min 1/2 w'Hw + g'w, lba <= A w <= uba, lbx <= w <= ubx`` at ``theta``.
+
+        The workspace bounds are widened, where needed, to the path of a maximal braking
+        from the measured state (:meth:`stopping_path`): a gripper outside the box, or too
+        fast towards its wall to stop inside, keeps a feasible problem and is brought back
+        by the cost. Only a velocity beyond ``v_max + a_max dt`` makes the QP infeasible.
+        """
+        offset = self.B @ theta + self.b0
+        low, high = self.con_low.copy(), self.con_high.copy()
+        stop = self.stopping_path(theta[0:3], theta[3:6])
+        rows = self.rows["workspace"]
+        low[rows] = np.minimum(low[rows], stop.ravel())
+        high[rows] = np.maximum(high[rows], stop.ravel())
+        return {
+            "h": self.H,
+            "g": self.G @ theta + self.g0,
+            "a": self.A,
+            "lba": low - offset,
+            "uba": high - offset,
+            "lbx": self.var_low,
+            "ubx": self.var_high,
+        }
+
+    def stopping_path(
+        self, position: NDArray[np.float64], velocity: NDArray[np.float64]
+    ) -> NDArray[np.float64]:
+        """Positions ``p[1..N]`` (shape ``(N, 3)``) when braking as hard as the constraints allow.
+
+        Per axis, the command steps the velocity towards zero by the acceleration bound each
+        step (it satisfies the velocity and acceleration constraints whenever the measured
+        speed is within ``v_max + a_max dt``).
+        """
+        a, bp_v, bp_u = self._model
+        step = self._acc_bound / (1.0 - a)
+        if a == 0.0:  # the velocity is the command: closed form
+            v = np.asarray(velocity, dtype=float)
+            speeds = np.maximum(np.abs(v) - self._k_step, 0.0)
+            np.minimum(speeds[1:], self.v_max, out=speeds[1:])
+            vs = np.sign(v) * speeds  # v[0..N]; u[k] = v[k+1]
+            return position + np.cumsum(bp_v * vs[:-1] + bp_u * vs[1:], axis=0)
+        p = np.asarray(position, dtype=float).copy()
+        v = np.asarray(velocity, dtype=float).copy()
+        out = np.empty((self.n, 3))
+        for k in range(self.n):
+            u = np.clip(np.sign(v) * np.maximum(np.abs(v) - step, 0.0), -self.v_max, self.v_max)
+            p = p + bp_v * v + bp_u * u
+            v = a * v + (1.0 - a) * u
+            out[k] = p
+        return out
+
+    def solve(self, theta: NDArray[np.float64]) -> MpcSolution:
+        """Solve the QP at ``theta`` (warm-started from the previous solve).
+
+        The data of :meth:`qp_data` are written into the arrays bound to the solver's buffer
+        (:class:`~codesign_mb.control.conic_buffer.ConicBuffer`), so a step converts nothing.
+        """
+        if self._workspace is not None:
+            return self._solve_native(theta)
+        conic = self._conic
+        inputs = conic.inputs
+        self._fill(np.asarray(theta, dtype=float), inputs["g"], inputs["lba"], inputs["uba"])
+        if self._warm_inputs:  # qpOASES hot-starts from its own active set instead
+            inputs["x0"][:] = self._x0
+            inputs["lam_x0"][:] = self._lam_x0
+            inputs["lam_a0"][:] = self._lam_a0
+        saved, sys.stdout = sys.stdout, _NULL_TEXT  # as _quiet_stdout, without its overhead
+        try:
+            start_cpu = time.thread_time()
+            start = time.perf_counter()
+            flag = conic()
+            elapsed = time.perf_counter() - start
+            cpu = time.thread_time() - start_cpu
+        finally:
+            sys.stdout = saved
+        outputs = conic.outputs
+        x = outputs["x"].copy()
+        # qpOASES: CasADi's unified return status is 0 exactly when it returned successfully.
+        success = bool(conic.stats().get("success", False)) if self._warm_inputs else flag == 0
+        n = self.n
+        if not (success and self._feasible(x, inputs)):
+            status = str(conic.stats().get("return_status", ""))
+            self.reset()  # never hot-start from a failed solve
+            return MpcSolution(np.zeros((n, 3)), False, status or "failed", elapsed, 0.0, cpu)
+        if self._warm_inputs:  # shifted primal, previous duals
+            self._x0 = np.concatenate([x[3 : 3 * n], x[3 * n - 3 : 3 * n], x[3 * n :]])
+            self._lam_x0 = outputs["lam_x"].copy()
+            self._lam_a0 = outputs["lam_a"].copy()
+        status = _SUCCESS_STATUS.get(self.config.solver) or str(conic.stats()["return_status"])
+        return MpcSolution(x[: 3 * n].reshape(n, 3), True, status, elapsed, float(x[3 * n]), cpu)
+
+    def _solve_native(self, theta: NDArray[np.float64]) -> MpcSolution:
+        """:meth:`solve` by DAQP on its kept workspace (:class:`DaqpWorkspace`)."""
+        workspace = self._workspace
+        assert workspace is not None
+        lower, upper = workspace.lower_a, workspace.upper_a
+        self._fill(np.asarray(theta, dtype=float), workspace.f, lower, upper)
+        start_cpu = time.thread_time()
+        start = time.perf_counter()
+        x, flag = workspace.solve()
+        elapsed = time.perf_counter() - start
+        cpu = time.thread_time() - start_cpu
+        n = self.n
+        ax = np.matmul(self.A, x, out=self._ax)
+        worst = worst_violation(x, ax, self.var_low, self.var_high, lower, upper)
+        if not (flag > 0 and worst <= FEASIBILITY_TOL):
+            workspace.reset()  # never hot-start from a failed solve
+            status = DAQP_STATUS.get(flag, f"exit flag {flag}") if flag <= 0 else "infeasible x"
+            return MpcSolution(np.zeros((n, 3)), False, status, elapsed, 0.0, cpu)
+        return MpcSolution(x[: 3 * n].reshape(n, 3), True, "optimal", elapsed, float(x[3 * n]), cpu)
+
+    def _fill(
+        self,
+        theta: NDArray[np.float64],
+        g: NDArray[np.float64],
+        lba: NDArray[np.float64],
+        uba: NDArray[np.float64],
+    ) -> None:
+        """Write :meth:`qp_data`'s ``g``, ``lba``, ``uba`` at ``theta`` into the given arrays."""
+        np.matmul(self.G, theta, out=g)
+        g += self.g0
+        offset = self._offset
+        np.matmul(self.B, theta, out=offset)
+        offset += self.b0
+        a, bp_v, bp_u = self._model
+        if a == 0.0:  # compiled closed form, the same arithmetic as below
+            row0 = self.rows["workspace"].start
+            stopping_bounds(
+                theta[0:3], theta[3:6], self._k_step, self.v_max, bp_v, bp_u,
+                self.con_low, self.con_high, row0, offset, lba, uba,
+            )  # fmt: skip
+            return
+        low, high = self._low, self._high
+        rows = self.rows["workspace"]
+        stop = self.stopping_path(theta[0:3], theta[3:6]).ravel()
+        np.minimum(self.con_low[rows], stop, out=low[rows])
+        np.maximum(self.con_high[rows], stop, out=high[rows])
+        np.subtract(low, offset, out=lba)
+        np.subtract(high, offset, out=uba)
+
+    def _feasible(
+        self, x: NDArray[np.float64], data: Mapping[str, NDArray], tol: float = FEASIBILITY_TOL
+    ) -> bool:
+        """Whether ``x`` satisfies the hard bounds (a solver's "success" is not taken on trust)."""
+        ax = np.matmul(self.A, x, out=self._ax)
+        worst = worst_violation(x, ax, data["lbx"], data["ubx"], data["lba"], data["uba"])
+        return bool(worst <= tol)
+
+    def __getstate__(self) -> dict[str, Any]:
+        # The CasADi objects are rebuilt on unpickling (worker processes).
+        return {
+            "config": self.config,
+            "dt": self.dt,
+            "max_speed_mps": self.v_max / self.config.speed_fraction,
+        }
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self.__init__(state["config"], dt=state["dt"], max_speed_mps=state["max_speed_mps"])  # type: ignore[misc]
+
+
+class _NullText(io.TextIOBase):
+    def write(self, text: str) -> int:
+        return len(text)
+
+
+_NULL_TEXT = _NullText()
+
+
+@contextlib.contextmanager
+def _quiet_stdout() -> Iterator[None]:
+    """Silence ``sys.stdout`` inside the block.
+
+    qpOASES prints its licence banner for every instance and some error traces regardless of
+    its ``printLevel``, through CasADi's output stream, which writes to Python's
+    ``sys.stdout``; ``--json`` output must stay clean.
+    """
+    saved = sys.stdout
+    sys.stdout = _NULL_TEXT
+    try:
+        yield
+    finally:
+        sys.stdout = saved
