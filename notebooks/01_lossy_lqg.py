@@ -44,16 +44,16 @@ import numpy as np
 import pandas as pd
 
 from codesign_mb.adaptation.base import StaticQos
-from codesign_mb.rollout.compose import lqg, lqg_average_cost
 from codesign_mb.estimation.kalman import (
     IntermittentKalmanFilter,
     critical_arrival_bounds,
     expected_covariance_bounds,
     intermittent_riccati,
 )
-from codesign_mb.rollout import rollout
 from codesign_mb.network import BernoulliLink, LinkObservationWrapper
 from codesign_mb.plants.linear import LinearPlantEnv, inverted_pendulum, scalar_unstable
+from codesign_mb.rollout import rollout
+from codesign_mb.rollout.compose import lqg, lqg_average_cost
 
 SMOKE = os.environ.get("CODESIGN_SMOKE") == "1"
 N_SEQUENCES = 2_000 if SMOKE else 20_000  # Monte-Carlo arrival sequences for E[P]

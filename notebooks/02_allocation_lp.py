@@ -46,8 +46,8 @@ import matplotlib.pyplot as plt
 import numpy as np
 import pandas as pd
 
-from codesign_mb.wifi import generate_trace, offline_optimum, replay
 from codesign_mb.studies.fig_wifi import CHANNEL_PRESETS, describe_channel
+from codesign_mb.wifi import generate_trace, offline_optimum, replay
 from codesign_mb.wifi.offline import airtime_prices
 from codesign_mb.wifi.phy import data_rate_mbps
 

@@ -48,6 +48,7 @@ import numpy as np
 import pandas as pd
 from IPython.display import Image, Markdown, display
 
+from codesign_mb.core.results import ResultsDir, write_results
 from codesign_mb.studies.report import (
     ReportConfig,
     build_report,
@@ -55,7 +56,6 @@ from codesign_mb.studies.report import (
     labels_of,
     success_summary,
 )
-from codesign_mb.core.results import ResultsDir, write_results
 from codesign_mb.studies.sweep import SweepConfig, run_sweep
 
 SMOKE = os.environ.get("CODESIGN_SMOKE") == "1"

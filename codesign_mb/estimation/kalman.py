@@ -95,7 +95,7 @@ def _gain_and_covariance(
     """The gain ``K`` and the covariance of :func:`_correct` (they depend on ``P`` only)."""
     PCt = P @ C.T
     S = C @ PCt + R
-    K = np.linalg.solve(S, PCt.T).T  # P C' S^{-1}, S symmetric
+    K = np.asarray(np.linalg.solve(S, PCt.T).T, dtype=np.float64)  # P C' S^{-1}, S symmetric
     IKC = eye - K @ C
     P = IKC @ P @ IKC.T + K @ R @ K.T
     return K, 0.5 * (P + P.T)

@@ -139,6 +139,7 @@ class DelayCompensatingPredictor:
             self.C = np.eye(6)
             self.R = np.diag([self.position_noise_std**2] * 3 + [self.velocity_noise_std**2] * 3)
         self._kf: Any = None
+        self._kf_model: tuple[Any, ...] = ()
         self._t = 0
         self._last_stamp: int | None = None
         self.updates = 0
