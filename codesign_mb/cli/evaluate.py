@@ -22,6 +22,7 @@ from codesign_mb.cli.common import (
     explicit,
     load_config,
     note,
+    progress_bar,
     track,
 )
 
@@ -100,12 +101,8 @@ def evaluate_command(
         section="evaluate",
     )
     label = evaluation_label(cfg)
-    result = run_evaluation(
-        cfg,
-        out,
-        name=name,
-        progress=lambda rows, total: track(rows, total=total, description=label, disable=as_json),
-    )
+    with progress_bar(label, disable=as_json) as progress:
+        result = run_evaluation(cfg, out, name=name, progress=progress)
     if not as_json:
         note(f"results written to {result.files['parquet']} and {result.files['summary']}")
     emit(result.summary, as_json=as_json, title=label)

@@ -2,7 +2,7 @@
 
 :func:`run_evaluation` runs the episodes of an
 :class:`~codesign_mb.evaluation.evaluate.EvaluateConfig` (in parallel,
-:func:`~codesign_mb.evaluation.evaluate.iter_episodes`), summarises them
+:func:`~codesign_mb.evaluation.evaluate.run_config`), summarises them
 (:func:`~codesign_mb.evaluation.evaluate.summarize`: success with its Wilson interval, QoS,
 age and, with an MPC, its solve times and failed solves) and writes both into a results
 folder.
@@ -11,7 +11,7 @@ folder.
 from __future__ import annotations
 
 import json
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -19,12 +19,7 @@ from typing import Any
 import pandas as pd
 
 from codesign_mb.core.results import atomic_write, to_jsonable, write_results
-from codesign_mb.evaluation.evaluate import (
-    EvaluateConfig,
-    iter_episodes,
-    rows_to_table,
-    summarize,
-)
+from codesign_mb.evaluation.evaluate import EvaluateConfig, run_config
 
 __all__ = ["EvaluationOutputs", "evaluation_label", "run_evaluation"]
 
@@ -55,28 +50,14 @@ def run_evaluation(
     out_dir: str | Path,
     *,
     name: str = "evaluate",
-    progress: Callable[[Iterator[dict[str, Any]], int], Iterable[dict[str, Any]]] | None = None,
+    progress: Callable[[int, int], None] | None = None,
 ) -> EvaluationOutputs:
     """Run ``config``'s episodes and write ``<name>.{parquet,csv,json}`` and its summary.
 
-    ``progress(rows, total)`` wraps the stream of finished episodes (e.g. a progress bar).
+    ``progress(done, total)`` is called after each episode (e.g. a progress bar).
     The summary is also in the table's metadata (``extra.summary``).
     """
-    controller, estimator, qos = config.components()
-    rows: Iterable[dict[str, Any]] = iter_episodes(
-        controller,
-        estimator,
-        qos,
-        config.env_config(),
-        config.trials,
-        config.seed,
-        workers=config.workers,
-        max_steps=config.max_steps,
-    )
-    if progress is not None:
-        rows = progress(iter(rows), config.trials)
-    table = rows_to_table(list(rows))
-    summary = summarize(table)
+    table, summary = run_config(config, progress=progress)
     files = dict(
         write_results(out_dir, table=table, config=config, name=name, extra={"summary": summary})
     )
