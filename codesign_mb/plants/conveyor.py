@@ -409,9 +409,9 @@ class ConveyorPickPlace(gym.Env):
         action = np.asarray(action, dtype=np.float64)
         if action.shape != (4,):
             raise ValueError(f"action must have shape (4,), got {action.shape}")
-        if not np.all(np.isfinite(action)):
+        if not all(map(math.isfinite, action.tolist())):
             raise ValueError(f"action must be finite, got {action.tolist()}")
-        action = np.clip(action, -1.0, 1.0)
+        action = np.minimum(np.maximum(action, -1.0), 1.0)  # np.clip, without its dispatch
         velocity = action[:3] * self.config.max_gripper_speed_mps
         self._keep_in_workspace(velocity)
         self.sim.step(velocity, close=bool(action[3] > 0.0))
@@ -463,7 +463,7 @@ class ConveyorPickPlace(gym.Env):
             min(x0 - lo0, x1 - lo1, x2 - lo2, hi0 - x0, hi1 - x1, hi2 - x2) > margin
             and self.workspace_radius - radius > margin
         ):  # the usual case: far from every face, only the speed limit applies
-            np.clip(velocity, -limit, limit, out=velocity)
+            np.minimum(np.maximum(velocity, -limit, out=velocity), limit, out=velocity)
             return
 
         def cap(distance: float) -> float:
@@ -500,8 +500,8 @@ class ConveyorPickPlace(gym.Env):
             obs[10:13] = sim.object_velocity()
             if cfg.velocity_noise_std_mps > 0:
                 obs[10:13] += rng.normal(0.0, cfg.velocity_noise_std_mps, 3)
-        space = self.observation_space
-        return np.clip(obs, space.low, space.high, out=obs)
+        space = self.observation_space  # np.clip into the bounds, without its dispatch
+        return np.minimum(np.maximum(obs, space.low, out=obs), space.high, out=obs)
 
     def _evaluate(self) -> tuple[float, bool, bool, bool, float]:
         gripper = self.sim.tcp_position()
