@@ -382,3 +382,70 @@ def test_random_bang_bang_actions_stay_in_the_workspace() -> None:
         assert rotation_error() < np.radians(0.5)
     assert worst_rotation < np.radians(15)
     env.close()
+
+
+def _python_braking(
+    velocity: list[float],
+    x: tuple[float, float, float],
+    low: list[float],
+    high: list[float],
+    workspace_radius: float,
+    margin: float,
+    T: float,
+    a: float,
+    limit: float,
+) -> list[float]:
+    """The braking law as plain Python (what ``plants.braking.keep_in_workspace`` compiles)."""
+    import math
+
+    x0, x1, x2 = x
+    radius = math.hypot(x0, x1)
+    if (
+        min(x0 - low[0], x1 - low[1], x2 - low[2], high[0] - x0, high[1] - x1, high[2] - x2)
+        > margin
+        and workspace_radius - radius > margin
+    ):
+        return [min(max(vi, -limit), limit) for vi in velocity]
+
+    def cap(distance: float) -> float:
+        return a * (math.sqrt(T * T + 2.0 * max(distance, 0.0) / a) - T)
+
+    v = [
+        min(max(vi, -cap(xi - lo)), cap(hi - xi))
+        for vi, xi, lo, hi in zip(velocity, x, low, high, strict=True)
+    ]
+    if radius > 0:
+        outward = (v[0] * x0 + v[1] * x1) / radius
+        allowed = cap(workspace_radius - radius)
+        if outward > allowed:
+            v[0] -= (outward - allowed) * x0 / radius
+            v[1] -= (outward - allowed) * x1 / radius
+    return [min(max(vi, -limit), limit) for vi in v]
+
+
+@pytest.mark.parametrize("margin", [None, 0.01])
+def test_compiled_braking_equals_the_python_law_bit_for_bit(
+    env: ConveyorPickPlace, margin: float | None
+) -> None:
+    import math
+
+    from codesign_mb.plants.braking import keep_in_workspace
+
+    rng = np.random.default_rng(0)
+    low, high = env.workspace_low, env.workspace_high
+    margin = env._brake_distance if margin is None else margin
+    T, a, limit = env.control_period_s, env._brake_accel, env.config.max_gripper_speed_mps
+    for _ in range(3000):  # inside, near and beyond the faces and the cylinder
+        x = rng.uniform(low - 0.1, high + 0.1)
+        if rng.random() < 0.2:
+            x[:2] *= env.workspace_radius / math.hypot(*x[:2]) * rng.uniform(0.97, 1.03)
+        velocity = rng.uniform(-1.5, 1.5, 3) * (rng.random(3) < 0.9)
+        expected = _python_braking(
+            velocity.tolist(), tuple(x.tolist()), low.tolist(), high.tolist(),
+            env.workspace_radius, margin, T, a, limit,
+        )  # fmt: skip
+        out = velocity.copy()
+        keep_in_workspace(
+            out, x, math.hypot(x[0], x[1]), low, high, env.workspace_radius, margin, T, a, limit
+        )
+        assert out.tolist() == expected

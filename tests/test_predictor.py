@@ -167,3 +167,46 @@ def test_bad_arguments() -> None:
         DelayCompensatingPredictor(LAYOUT, control_period_s=0.0)
     with pytest.raises(RuntimeError, match="reset"):
         DelayCompensatingPredictor(LAYOUT, control_period_s=DT).estimate(np.zeros(10), None)
+
+
+@pytest.mark.parametrize(
+    "value",
+    [
+        np.arange(6.0),
+        np.arange(12.0)[::2],  # a strided view
+        np.arange(6.0).astype(">f8"),  # big-endian: the general path
+        np.arange(6),  # integers
+        [0.0, 1.0, 2.0, 3.0, 4.0, 5.0],
+        np.array([0.0, 1.0, np.nan, 3.0, 4.0, 5.0]),
+        np.array([0.0, 1.0, 2.0, -np.inf, 4.0, 5.0]),
+        np.arange(5.0),
+    ],
+)
+def test_vector_fast_path_equals_the_general_check(value: object) -> None:
+    from codesign_mb.estimation.model_checks import _vector
+
+    def general(v: object) -> np.ndarray:
+        out = np.array(v, dtype=float)
+        if out.shape != (6,):
+            raise ValueError("shape")
+        if not np.isfinite(out).all():
+            raise ValueError("finite")
+        return out
+
+    try:
+        expected = general(value)
+    except ValueError:
+        with pytest.raises(ValueError):
+            _vector("z", value, 6)
+        return
+    out = _vector("z", value, 6)
+    assert out.dtype == np.float64 and out.flags.c_contiguous and out.flags.owndata
+    assert out.tobytes() == expected.tobytes()
+
+
+def test_age_rounds_like_rint() -> None:
+    from codesign_mb.estimation.base import split_networked_observation
+
+    for age in (0.0, 1.0, 2.5, 3.5, 4.4999, 4.5000001, 1e6 + 0.5, 7.0 - 1e-12):
+        _, got = split_networked_observation(np.array([1.0, age]))
+        assert type(got) is int and got == int(np.rint(age))

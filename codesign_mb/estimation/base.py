@@ -18,7 +18,7 @@ def split_networked_observation(
     Returns the plant-layout observation (remote part = ``y_t``) and the age ``zeta_t``.
     """
     observation = np.asarray(observation, dtype=float)
-    return observation[:-1], int(np.rint(observation[-1]))
+    return observation[:-1], round(float(observation[-1]))  # np.rint: half to even
 
 
 @runtime_checkable

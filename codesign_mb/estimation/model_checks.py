@@ -6,12 +6,15 @@ Shared by the filter (:mod:`codesign_mb.estimation.kalman`) and the covariance t
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from codesign_mb.core.config import as_matrix
 
 FloatArray = NDArray[np.float64]
+_FLOAT64 = np.dtype(np.float64)
 
 
 def _matrix(name: str, value: ArrayLike, shape: tuple[int, int] | None = None) -> FloatArray:
@@ -20,6 +23,11 @@ def _matrix(name: str, value: ArrayLike, shape: tuple[int, int] | None = None) -
 
 def _vector(name: str, value: ArrayLike, size: int) -> FloatArray:
     """``value`` as a finite 1-D float array of ``size`` entries (a scalar when size is 1)."""
+    if type(value) is np.ndarray and value.dtype is _FLOAT64 and value.shape == (size,):
+        out = value.copy()  # the usual case (a filter's measurement), checked element-wise
+        if not all(map(math.isfinite, out.tolist())):
+            raise ValueError(f"{name} must be finite, got {out.tolist()}")
+        return out
     try:
         out = np.array(value, dtype=float)
     except (TypeError, ValueError) as exc:

@@ -103,7 +103,7 @@ class ObservationBuffer:
     """
 
     def __init__(self, prior: ArrayLike | None = None) -> None:
-        self._in_flight: list[tuple[int, int, int, NDArray[np.float64]]] = []
+        self._in_flight: list[tuple[int, int, int, Packet]] = []
         self._seq = 0
         self._latest: Packet | None = None
         if prior is not None:
@@ -126,8 +126,11 @@ class ObservationBuffer:
                 f"arrival_step must be >= the packet timestamp {packet.timestamp}, "
                 f"got {arrival_step}"
             )
-        value = np.array(packet.value, dtype=float)
-        heapq.heappush(self._in_flight, (arrival_step, packet.timestamp, self._seq, value))
+        self._schedule(Packet(packet.timestamp, np.array(packet.value, dtype=float)), arrival_step)
+
+    def _schedule(self, packet: Packet, arrival_step: int) -> None:
+        """:meth:`push` of a packet whose value the buffer may keep (no copy, no check)."""
+        heapq.heappush(self._in_flight, (arrival_step, packet.timestamp, self._seq, packet))
         self._seq += 1
 
     def receive(self, t: int, *, delivered: bool, like: NDArray[np.float64]) -> Reception:
@@ -138,8 +141,7 @@ class ObservationBuffer:
         """
         arrived: list[Packet] = []
         while self._in_flight and self._in_flight[0][0] <= t:
-            _, stamp, _, value = heapq.heappop(self._in_flight)
-            arrived.append(Packet(stamp, value))
+            arrived.append(heapq.heappop(self._in_flight)[3])
         if len(arrived) > 1:
             arrived.sort(key=lambda p: p.timestamp)
         for packet in arrived:
@@ -197,7 +199,7 @@ class BernoulliLink:
         value = np.array(state, dtype=float)
         # eq_d: one uniform draw per step, whatever q is, so streams stay aligned across policies.
         delivered = bool(self._rng.random() < qos.reliability)
-        if delivered:
-            self._buffer.push(Packet(t, value), t + qos.latency_steps)
+        if delivered:  # value is this step's own copy: the buffer keeps it as it is
+            self._buffer._schedule(Packet(t, value), t + qos.latency_steps)
         self._t = t + 1
         return self._buffer.receive(t, delivered=delivered, like=value)

@@ -59,6 +59,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from codesign_mb.core.config import from_mapping
+from codesign_mb.plants.braking import keep_in_workspace
 from codesign_mb.robot.render import OffscreenRenderer
 from codesign_mb.robot.scene import BELT_HALF_WIDTH, BELT_SURFACE_Z, BELT_X, OBJECTS
 from codesign_mb.robot.simulator import ConveyorSimulator
@@ -341,8 +342,6 @@ class ConveyorPickPlace(gym.Env):
         # reachable with the gripper pointing down, away from singularities and joint limits.
         self.workspace_low = np.array([0.35, -0.55, BELT_SURFACE_Z + 0.02])
         self.workspace_high = np.array([0.70, 0.55, BELT_SURFACE_Z + 0.34])
-        self._workspace_low_list = self.workspace_low.tolist()
-        self._workspace_high_list = self.workspace_high.tolist()
         self.workspace_radius = 0.72
         self.sim.osc.set_workspace(self.workspace_low, self.workspace_high, self.workspace_radius)
         self._brake_accel = 0.5 * self.sim.osc.gains.max_accel_mps2
@@ -409,9 +408,9 @@ class ConveyorPickPlace(gym.Env):
         action = np.asarray(action, dtype=np.float64)
         if action.shape != (4,):
             raise ValueError(f"action must have shape (4,), got {action.shape}")
-        if not np.all(np.isfinite(action)):
+        if not all(map(math.isfinite, action.tolist())):
             raise ValueError(f"action must be finite, got {action.tolist()}")
-        action = np.clip(action, -1.0, 1.0)
+        action = np.minimum(np.maximum(action, -1.0), 1.0)  # np.clip, without its dispatch
         velocity = action[:3] * self.config.max_gripper_speed_mps
         self._keep_in_workspace(velocity)
         self.sim.step(velocity, close=bool(action[3] > 0.0))
@@ -451,41 +450,12 @@ class ConveyorPickPlace(gym.Env):
         # v <= a (sqrt(T^2 + 2 d / a) - T), so the reference stops at the face without
         # exceeding the deceleration a (below the inner loop's bound). In the interior this
         # does nothing.
-        T, a = self.control_period_s, self._brake_accel
         x = self.sim.osc.position_reference
-        limit = self.config.max_gripper_speed_mps
-        margin = self._brake_distance
-        x0, x1, x2 = x.tolist()
-        radius = math.hypot(x0, x1)
-        lo0, lo1, lo2 = self._workspace_low_list
-        hi0, hi1, hi2 = self._workspace_high_list
-        if (
-            min(x0 - lo0, x1 - lo1, x2 - lo2, hi0 - x0, hi1 - x1, hi2 - x2) > margin
-            and self.workspace_radius - radius > margin
-        ):  # the usual case: far from every face, only the speed limit applies
-            np.clip(velocity, -limit, limit, out=velocity)
-            return
-
-        def cap(distance: float) -> float:
-            return a * (math.sqrt(T * T + 2.0 * max(distance, 0.0) / a) - T)
-
-        v = [
-            min(max(vi, -cap(xi - lo)), cap(hi - xi))
-            for vi, xi, lo, hi in zip(
-                velocity.tolist(),
-                (x0, x1, x2),
-                self._workspace_low_list,
-                self._workspace_high_list,
-                strict=True,
-            )
-        ]
-        if radius > 0:
-            outward = (v[0] * x0 + v[1] * x1) / radius
-            allowed = cap(self.workspace_radius - radius)
-            if outward > allowed:
-                v[0] -= (outward - allowed) * x0 / radius
-                v[1] -= (outward - allowed) * x1 / radius
-        velocity[:] = [min(max(vi, -limit), limit) for vi in v]
+        keep_in_workspace(
+            velocity, x, math.hypot(x[0], x[1]), self.workspace_low, self.workspace_high,
+            self.workspace_radius, self._brake_distance, self.control_period_s,
+            self._brake_accel, self.config.max_gripper_speed_mps,
+        )  # fmt: skip
 
     def _observation(self) -> NDArray[np.float64]:
         cfg, sim, rng = self.config, self.sim, self.np_random
@@ -500,8 +470,8 @@ class ConveyorPickPlace(gym.Env):
             obs[10:13] = sim.object_velocity()
             if cfg.velocity_noise_std_mps > 0:
                 obs[10:13] += rng.normal(0.0, cfg.velocity_noise_std_mps, 3)
-        space = self.observation_space
-        return np.clip(obs, space.low, space.high, out=obs)
+        space = self.observation_space  # np.clip into the bounds, without its dispatch
+        return np.minimum(np.maximum(obs, space.low, out=obs), space.high, out=obs)
 
     def _evaluate(self) -> tuple[float, bool, bool, bool, float]:
         gripper = self.sim.tcp_position()

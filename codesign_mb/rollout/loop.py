@@ -10,6 +10,7 @@ robot ``i`` is DESIGN.md's data flow: the QoS policy and the link live in the
 from __future__ import annotations
 
 import math
+import operator
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any, Protocol
@@ -25,6 +26,7 @@ from codesign_mb.network.wrapper import LinkObservationWrapper
 __all__ = ["ClosedLoop", "SharedChannelLike", "Transition", "rollout", "rollout_shared"]
 
 _RECORDED = ("qos_reliability", "qos_latency_steps", "qos_cost", "delivered", "age")
+_recorded = operator.itemgetter(*_RECORDED)
 
 
 @dataclass(frozen=True, slots=True)
@@ -119,7 +121,7 @@ class ClosedLoop:
         action = np.asarray(self.controller.act(state), dtype=float)
         head: list[Any] | None = None
         if self._record is not None:
-            head = [info[k] for k in _RECORDED]
+            head = [*_recorded(info)]
             error = state[self._remote] - info["remote_true"]
             head.append(math.sqrt(error.dot(error)))  # the norm of the estimation error
         obs, reward, terminated, truncated, next_info = self.env.step(action)
@@ -161,50 +163,60 @@ _SCALARS = (bool, int, float, np.bool_, np.float64, np.int64)
 """Types whose values are recorded without asking ``np.ndim`` (0-d by construction)."""
 
 
+def _scalar_keys(info: dict[str, Any]) -> list[str]:
+    """The ``info`` keys a row records: scalar, non-string values not among :data:`_HEAD`."""
+    return [
+        k
+        for k, v in info.items()
+        if k not in _HEAD and (type(v) in _SCALARS or (np.ndim(v) == 0 and not isinstance(v, str)))
+    ]
+
+
 class _Record:
-    """The per-step rows of one episode, kept as columns (one DataFrame at the end).
+    """The per-step rows of one episode, as tuples (one DataFrame at the end).
 
     A row is ``t``, the QoS columns, ``estimation_error``, ``reward`` and every scalar,
-    non-string ``info`` entry not among them. While every step has the same ``info`` columns
-    the values go straight into lists; otherwise the rows fall back to dicts, which pandas
-    aligns (a missing entry is NaN).
+    non-string ``info`` entry not among them. Which entries those are is found on the first
+    step and again whenever ``info``'s keys or value types differ from that step's; while the
+    recorded keys stay those of the first step, rows are tuples in one column order,
+    otherwise they fall back to dicts, which pandas aligns (a missing entry is NaN).
     """
 
     def __init__(self) -> None:
         self.keys: tuple[str, ...] | None = None
-        self.columns: list[list[Any]] = []
+        self.tuples: list[tuple[Any, ...]] = []
         self.rows: list[dict[str, Any]] | None = None
+        self._signature: tuple[tuple[str, ...], tuple[type, ...]] | None = None
 
     def append(self, t: int, head: list[Any], reward: float, info: dict[str, Any]) -> None:
-        keys = []
-        values: list[Any] = [t, *head, reward]
-        for k, v in info.items():
-            if k in _HEAD:
-                continue
-            if type(v) in _SCALARS or (np.ndim(v) == 0 and not isinstance(v, str)):
-                keys.append(k)
-                values.append(v)
+        signature = (tuple(info), tuple(map(type, info.values())))
+        if signature == self._signature and self.keys is not None:  # the usual step
+            self.tuples.append((t, *head, reward, *map(info.__getitem__, self.keys)))
+            return
+        keys = tuple(_scalar_keys(info))
+        values = (t, *head, reward, *map(info.__getitem__, keys))
         if self.keys is None and self.rows is None:
-            self.keys = tuple(keys)
-            self.columns = [[] for _ in range(len(values))]
-        if self.rows is None and tuple(keys) != self.keys:
+            self.keys, self._signature = keys, signature
+        if self.rows is None and keys != self.keys:
             self.rows = self._as_rows()
         if self.rows is not None:
             self.rows.append(dict(zip((*_HEAD, *keys), values, strict=True)))
             return
-        for column, value in zip(self.columns, values, strict=True):
-            column.append(value)
+        self.tuples.append(values)
 
     def _as_rows(self) -> list[dict[str, Any]]:
         names = (*_HEAD, *(self.keys or ()))
-        return [dict(zip(names, row, strict=True)) for row in zip(*self.columns, strict=True)]
+        self._signature = None
+        return [dict(zip(names, row, strict=True)) for row in self.tuples]
 
     def frame(self) -> pd.DataFrame:
         if self.rows is not None:
             return pd.DataFrame(self.rows)
         if self.keys is None:
             return pd.DataFrame([])
-        return pd.DataFrame(dict(zip((*_HEAD, *self.keys), self.columns, strict=True)))
+        names = (*_HEAD, *self.keys)
+        columns = map(list, zip(*self.tuples, strict=True))
+        return pd.DataFrame(dict(zip(names, columns, strict=True)))
 
 
 def rollout(
