@@ -83,6 +83,8 @@ def test_capacity_runs_the_conveyor_with_mpc_predictor_and_both_qos(tmp_path):
     assert set(table.columns) >= {"success_rate", "capacity_robots", "trials"}
     assert results["mpc_failures"].ge(0).all()  # the MPC's failed solves, per trial
     assert table["mpc_failures"].sum() == results["mpc_failures"].sum()
+    assert (results["allocator_fallbacks"] == 0).all()  # healthy convex QPs: none, and counted
+    assert table["allocator_fallbacks"].sum() == 0
 
 
 def test_capacity_table_sums_mpc_failures_over_trials():

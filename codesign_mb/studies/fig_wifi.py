@@ -346,6 +346,8 @@ def run_point(
         "mean_latency_ms": float(np.nanmean(summary["mean_latency_ms"]))
         if summary["delivered"].sum()
         else float("nan"),
+        # ticks whose convex QP failed and were rounded from zero service (never silent)
+        "allocator_fallbacks": int(channel.fallbacks.total),
     }
     failures = [
         m["mpc_failures"] for m in map(_episode_metrics, controllers) if "mpc_failures" in m
@@ -403,13 +405,13 @@ def capacity_table(results: pd.DataFrame, *, success_target: float = 0.95) -> pd
     A curve's capacity is the largest robot count up to which every simulated count reaches
     ``success_target`` (0 if the smallest does not). ``mean_reliability`` and
     ``delivered_fraction`` are NaN when ``results`` has no such column; ``mpc_failures`` (the
-    trials' sum) is there when ``results`` has it.
+    trials' sum) is there when ``results`` has it, and so is ``allocator_fallbacks``.
     """
     keys = ["channel", "scheduler", "pipeline", "robots"]
     results = results.assign(
         **{c: math.nan for c in ("mean_reliability", "delivered_fraction") if c not in results}
     )
-    sums = {"mpc_failures": ("mpc_failures", _sum_or_nan)} if "mpc_failures" in results else {}
+    sums = {c: (c, _sum_or_nan) for c in ("mpc_failures", "allocator_fallbacks") if c in results}
     curves = (
         results.groupby(keys, as_index=False)
         .agg(
