@@ -20,6 +20,7 @@ from codesign_mb.plants.linear import LinearPlantEnv
         ("codesign_mb/ToyConveyor-v0", {}),
         ("codesign_mb/LinearPlant-v0", {"plant": "pendulum", "horizon": 20}),
         ("codesign_mb/LinearPlant-v0", {"plant": "scalar"}),
+        ("codesign_mb/BeltTracking-v0", {}),
     ],
 )
 def test_made_env_has_its_spec_and_passes_check_env(env_id: str, kwargs: dict) -> None:

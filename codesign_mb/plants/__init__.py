@@ -1,4 +1,5 @@
-"""Plants: linear plants (python-control), the MuJoCo conveyor pick-and-place, a kinematic toy.
+"""Plants: linear plants (python-control), the MuJoCo conveyor pick-and-place, a kinematic toy,
+and the belt-tracking double integrator of the linear sweep scenario.
 
 Each is registered with Gymnasium, so ``gymnasium.make("codesign_mb/ConveyorPickPlace-v0")``
 (or ``ToyConveyor-v0``, ``LinearPlant-v0`` with ``plant="pendulum"`` ...) gives it with its
@@ -12,6 +13,7 @@ _ENVS = {
     "codesign_mb/ConveyorPickPlace-v0": "codesign_mb.plants.conveyor:ConveyorPickPlace",
     "codesign_mb/ToyConveyor-v0": "codesign_mb.plants.toy:ToyConveyor",
     "codesign_mb/LinearPlant-v0": "codesign_mb.plants.linear:make_linear_env",
+    "codesign_mb/BeltTracking-v0": "codesign_mb.plants.belt_tracking:BeltTracking",
 }
 
 for _id, _entry_point in _ENVS.items():

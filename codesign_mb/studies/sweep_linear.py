@@ -1,24 +1,32 @@
 """The ``linear`` sweep scenario: a gripper tracking an object on a belt, LQG over a lossy link.
 
 A linear stand-in for the pick-and-place task, milliseconds per trial, so sweeps and their
-backends can be exercised (and the trends read) without MuJoCo. One trial simulates
-``n_robots`` independent robots for ``horizon_steps`` control periods of ``dt``:
+backends can be exercised (and the trends read) without MuJoCo. One trial runs ``n_robots``
+independent robots for ``horizon_steps`` control periods of ``dt``, each one episode of THE
+closed loop (:func:`~codesign_mb.rollout.rollout`) on the plant
+:class:`~codesign_mb.plants.belt_tracking.BeltTracking`:
 
 - **Object** (the remote state, perceived at the edge): ``o = [p, v]`` with
   ``p_{t+1} = p_t + dt v_t``, ``v_{t+1} = v_t + w_t``, ``w_t ~ N(0, velocity_noise_mps^2)``,
   ``v_0`` = the belt speed. The edge measures ``x_t = o_t + n_t``.
 - **Network**: each robot's packets go over a :class:`~codesign_mb.network.BernoulliLink`
-  with latency ``latency_steps`` and reliability ``q = reliability * min(1, capacity_robots /
-  n_robots)``: a crude shared channel that serves ``capacity_robots`` robots at the requested
-  reliability and spreads the losses evenly beyond (the WiFi simulator is the real model).
+  (behind a :class:`~codesign_mb.network.LinkObservationWrapper` with a
+  :class:`~codesign_mb.adaptation.base.StaticQos`) with latency ``latency_steps`` and
+  reliability ``q = reliability * min(1, capacity_robots / n_robots)``: a crude shared
+  channel that serves ``capacity_robots`` robots at the requested reliability and spreads the
+  losses evenly beyond (the WiFi simulator is the real model).
 - **Robot**: a double integrator gripper ``g = [pos, vel]`` (acceleration input, clipped to
   ``max_accel_mps2``), driven by the LQR ``u = -K (g - o_hat)`` of the error dynamics
-  ``e = g - o`` with weights ``diag(1, velocity_weight)`` and ``control_weight``.
+  ``e = g - o`` with weights ``diag(1, velocity_weight)`` and ``control_weight``
+  (:class:`~codesign_mb.control.tracking.TrackingLqr`).
 - **Pipelines** (how ``o_hat`` is formed from ``y_t = x_{t - zeta_t}``):
-  ``ideal`` (the true ``o_t``, no network: the upper bound), ``none`` (``y_t`` used as if
-  current), ``predictor`` (``A^zeta y_t``: extrapolated over its age with the model) and
-  ``kalman`` (:class:`~codesign_mb.estimation.kalman.IntermittentKalmanFilter` with lost and
-  delayed measurements).
+  ``ideal`` (no estimator: ideal control on the edge's current measurement ``x_t``, no
+  network: the upper bound), ``none`` (``y_t`` used as if current,
+  :class:`~codesign_mb.estimation.base.PassThroughEstimator`), ``predictor`` (``A^zeta y_t``:
+  extrapolated over its age with the model,
+  :class:`~codesign_mb.estimation.extrapolation.ModelExtrapolation`) and ``kalman``
+  (:class:`~codesign_mb.estimation.kalman.KalmanEstimator` of the object, fed with every
+  packet that arrives, lost and delayed ones included).
 
 Metrics (one row per trial, averaged over robots): ``success_rate`` (the paper's ``J``: the
 mean ``|p - pos|`` over the last ``grasp_window_steps`` steps within ``success_radius_m``),
@@ -29,17 +37,23 @@ requested ``q``: the paper's "average PDR"), ``delivered_fraction``, ``mean_age_
 
 from __future__ import annotations
 
-import functools
+import dataclasses
 import importlib.util
 import math
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from numpy.typing import NDArray
+import pandas as pd
 
-from codesign_mb.estimation.kalman import IntermittentKalmanFilter
-from codesign_mb.network import BernoulliLink, QosRequest
+from codesign_mb.adaptation.base import StaticQos
+from codesign_mb.control.tracking import TrackingLqr
+from codesign_mb.estimation.base import Estimator, PassThroughEstimator
+from codesign_mb.estimation.extrapolation import ModelExtrapolation, RemotePartEstimator
+from codesign_mb.estimation.kalman import KalmanEstimator
+from codesign_mb.network import BernoulliLink, LinkObservationWrapper, QosRequest
+from codesign_mb.plants.belt_tracking import BeltTracking
+from codesign_mb.rollout import rollout
 
 __all__ = ["DEFAULT_PIPELINES", "PIPELINES", "Params", "run_trial"]
 
@@ -131,25 +145,6 @@ class Params:
                 raise ValueError(f"{name} must be >= 0, got {value!r}")
 
 
-def _object_matrix(dt: float) -> NDArray[np.float64]:
-    return np.array([[1.0, dt], [0.0, 1.0]])
-
-
-@functools.lru_cache(maxsize=64)
-def _lqr_gain(dt: float, velocity_weight: float, control_weight: float) -> NDArray[np.float64]:
-    """Infinite-horizon discrete LQR gain of the double-integrator error dynamics."""
-    from scipy.linalg import solve_discrete_are
-
-    a = _object_matrix(dt)
-    b = np.array([[0.5 * dt * dt], [dt]])
-    q = np.diag([1.0, velocity_weight])
-    r = np.array([[control_weight]])
-    p = solve_discrete_are(a, b, q, r)
-    gain = np.linalg.solve(r + b.T @ p @ b, b.T @ p @ a)
-    gain.setflags(write=False)
-    return gain
-
-
 def channel_reliability(params: Params, n_robots: int) -> float:
     """The delivery probability each of ``n_robots`` robots gets on the shared channel."""
     return params.reliability * min(1.0, params.capacity_robots / n_robots)
@@ -159,96 +154,91 @@ def run_trial(config: Any, seed: int) -> dict[str, float]:
     """One trial of the linear scenario (see the module docstring); pure in ``seed``.
 
     ``config`` is a :class:`~codesign_mb.studies.sweep.TrialConfig` whose ``params`` is a
-    :class:`Params`.
+    :class:`Params`. Robot ``i`` runs one :func:`~codesign_mb.rollout.rollout` seeded with
+    the ``i``-th stream spawned from ``seed``.
     """
     params: Params = config.params if config.params is not None else Params()
     if config.pipeline not in PIPELINES:
         raise ValueError(f"pipeline must be one of {', '.join(PIPELINES)}, got {config.pipeline!r}")
+    env = _networked_plant(params, config.belt_speed_mps, config.n_robots)
+    estimator = _estimator(config.pipeline, env, params)
+    controller = TrackingLqr.for_env(env)
     robots = np.random.SeedSequence(seed).spawn(config.n_robots)
     per_robot = [
-        _simulate_robot(params, config.pipeline, config.belt_speed_mps, config.n_robots, ss)
+        _robot_metrics(
+            rollout(env, estimator, controller, seed=int(ss.generate_state(1)[0])), params
+        )
         for ss in robots
     ]
-    return {key: float(np.mean([m[key] for m in per_robot])) for key in per_robot[0]}
+    return {key: _mean([m[key] for m in per_robot]) for key in per_robot[0]}
 
 
-def _simulate_robot(
-    params: Params,
-    pipeline: str,
-    belt_speed_mps: float,
-    n_robots: int,
-    seed_seq: np.random.SeedSequence,
-) -> dict[str, float]:
-    plant_ss, link_ss = seed_seq.spawn(2)
-    rng = np.random.default_rng(plant_ss)
-    dt = params.control_period_s
-    a_obj = _object_matrix(dt)
-    b_grip = np.array([0.5 * dt * dt, dt])
-    gain = _lqr_gain(dt, float(params.velocity_weight), float(params.control_weight))[0]
-    q_weight = np.diag([1.0, params.velocity_weight])
-    noise_std = np.array([params.measurement_noise_m, params.measurement_noise_mps])
+def _networked_plant(
+    params: Params, belt_speed_mps: float, n_robots: int
+) -> LinkObservationWrapper:
+    """One robot's plant behind its share of the channel (reset per robot by the rollout)."""
+    plant = BeltTracking(
+        belt_speed_mps=belt_speed_mps,
+        horizon=params.horizon_steps,
+        control_period_s=params.control_period_s,
+        start_offset_m=params.start_offset_m,
+        start_spread_m=params.start_spread_m,
+        velocity_noise_mps=params.velocity_noise_mps,
+        measurement_noise_m=params.measurement_noise_m,
+        measurement_noise_mps=params.measurement_noise_mps,
+        velocity_weight=params.velocity_weight,
+        control_weight=params.control_weight,
+        max_accel_mps2=params.max_accel_mps2,
+        success_radius_m=params.success_radius_m,
+    )
+    qos = StaticQos(channel_reliability(params, n_robots), params.latency_steps)
+    return LinkObservationWrapper(plant, BernoulliLink(), qos)
 
-    prior = np.array([params.start_offset_m, belt_speed_mps])
-    obj = prior + np.array([rng.normal(0.0, params.start_spread_m), 0.0])
-    grip = np.zeros(2)
-    qos = QosRequest(channel_reliability(params, n_robots), params.latency_steps)
-    link = BernoulliLink()
-    link.reset(seed=int(link_ss.generate_state(1)[0]), prior=prior)
-    kalman = _make_kalman(params, prior) if pipeline == "kalman" else None
 
-    errors, costs, ages, delivered = [], [], [], []
-    within = 0
-    for _ in range(params.horizon_steps):
-        measured = obj + rng.normal(0.0, 1.0, size=2) * noise_std
-        rx = link.step(measured, qos)
-        if pipeline == "ideal":
-            estimate = obj
-        elif pipeline == "none":
-            estimate = rx.observation
-        elif pipeline == "predictor":
-            estimate = np.linalg.matrix_power(a_obj, rx.age) @ rx.observation
-        else:
-            assert kalman is not None
-            for packet in rx.arrivals:
-                kalman.update(packet.value, packet.timestamp)
-            estimate = np.asarray(kalman.x, dtype=float)
-        error = grip - obj
-        u = float(np.clip(-gain @ (grip - estimate), -params.max_accel_mps2, params.max_accel_mps2))
-        errors.append(error[0])
-        costs.append(float(error @ q_weight @ error + params.control_weight * u * u))
-        ages.append(rx.age)
-        delivered.append(rx.delivered)
-        within += abs(error[0]) <= params.success_radius_m
-        # Advance: gripper under u, object along the belt with a velocity random walk.
-        grip = a_obj @ grip + b_grip * u
-        obj = a_obj @ obj + np.array([0.0, rng.normal(0.0, params.velocity_noise_mps)])
-        if kalman is not None:
-            kalman.predict()
-    final_error = float(np.mean(np.abs(errors[-params.grasp_window_steps :])))
+def _estimator(pipeline: str, env: LinkObservationWrapper, params: Params) -> Estimator | None:
+    """The estimator of ``pipeline`` (``None``: ideal control); reused across robots."""
+    if pipeline == "ideal":
+        return None
+    if pipeline == "none":
+        return PassThroughEstimator()
+    plant = env.unwrapped
+    assert isinstance(plant, BeltTracking)
+    model = plant.remote_model
+    if pipeline == "predictor":
+        return RemotePartEstimator(ModelExtrapolation(model.A), plant.remote_slice)
+    # The filter's covariances are floored so that it stays well posed when a noise is 0.
+    floored = dataclasses.replace(
+        model,
+        W=np.maximum(model.W, np.diag([1e-12, 0.0])),
+        V=np.maximum(model.V, np.diag([1e-12, 1e-12])),
+    )
+    kalman = KalmanEstimator(
+        floored,
+        x0_mean=plant.remote_prior(),
+        x0_cov=np.maximum(plant.remote_prior_cov(), np.diag([1e-12, 1e-6])),
+        max_delay_steps=max(64, params.latency_steps + 1),
+        link_wrapper=env,
+    )
+    return RemotePartEstimator(kalman, plant.remote_slice)
+
+
+def _robot_metrics(table: pd.DataFrame, params: Params) -> dict[str, float]:
+    """The metrics of one robot from its per-step record (one row per control step)."""
+    errors = table["tracking_error_m"].to_numpy(dtype=float)
+    final_error = _mean(np.abs(errors[-params.grasp_window_steps :]))
     return {
         "success_rate": float(final_error <= params.success_radius_m),
-        "within_radius_fraction": within / params.horizon_steps,
-        "rms_error_m": float(np.sqrt(np.mean(np.square(errors)))),
-        "final_error_m": float(final_error),
-        "lqg_cost": float(np.mean(costs)),
-        "mean_reliability": qos.reliability,
-        "delivered_fraction": float(np.mean(delivered)),
-        "mean_age_steps": float(np.mean(ages)),
+        "within_radius_fraction": _mean(table["within_radius"]),
+        "rms_error_m": math.sqrt(_mean(np.square(errors))),
+        "final_error_m": final_error,
+        "lqg_cost": _mean(table["stage_cost"]),
+        "mean_reliability": _mean(table["qos_reliability"]),
+        "delivered_fraction": _mean(table["delivered"]),
+        "mean_age_steps": _mean(table["age"]),
     }
 
 
-def _make_kalman(params: Params, prior: NDArray[np.float64]) -> Any:
-    dt = params.control_period_s
-    process = np.diag([1e-12, params.velocity_noise_mps**2])
-    noise = np.diag(
-        [max(params.measurement_noise_m, 1e-6) ** 2, max(params.measurement_noise_mps, 1e-6) ** 2]
-    )
-    kf = IntermittentKalmanFilter(
-        _object_matrix(dt),
-        np.eye(2),
-        process,
-        noise,
-        max_delay_steps=max(64, params.latency_steps + 1),
-    )
-    kf.reset(prior, np.diag([max(params.start_spread_m, 1e-6) ** 2, 1e-6]))
-    return kf
+def _mean(values: Any) -> float:
+    """The mean, shifted by the first value: exact for a constant column (a static ``q``)."""
+    array = np.asarray(values, dtype=float)
+    return float(array[0] + np.mean(array - array[0]))
