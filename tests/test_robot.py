@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import mujoco
 import numpy as np
 import pinocchio as pin
@@ -262,3 +264,23 @@ def test_compiled_substeps_equal_the_python_loop() -> None:
     np.testing.assert_array_equal(a.data.qpos, b.data.qpos)
     np.testing.assert_array_equal(a.data.qvel, b.data.qvel)
     np.testing.assert_array_equal(a.data.ctrl, b.data.ctrl)
+
+
+def test_leash_kernel_equals_the_numpy_expression() -> None:
+    """native.leash_reference is the numpy leash bit for bit (np.dot rounds like e @ e)."""
+    from codesign_mb.robot.native import leash_reference
+
+    rng = np.random.default_rng(5)
+    moved = 0
+    for _ in range(2000):
+        refs = rng.normal(size=(20, 6)) * 0.05
+        pos, start, max_lag = rng.normal(size=3) * 0.05, int(rng.integers(0, 20)), 0.05
+        expected = refs.copy()
+        error = expected[start, :3] - pos
+        dist = math.sqrt(error @ error)
+        if dist > max_lag:
+            expected[start:, :3] -= error * (1.0 - max_lag / dist)
+            moved += 1
+        leash_reference(refs, start, pos, max_lag)
+        np.testing.assert_array_equal(refs, expected)
+    assert 0 < moved < 2000

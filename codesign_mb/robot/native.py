@@ -18,13 +18,20 @@ from __future__ import annotations
 
 import ctypes
 import glob
+import math
 import os
 
 import mujoco
 import numpy as np
 from numba import njit, types
 
-__all__ = ["affine_torque", "operational_space_map", "plan_reference", "run_substeps"]
+__all__ = [
+    "affine_torque",
+    "leash_reference",
+    "operational_space_map",
+    "plan_reference",
+    "run_substeps",
+]
 
 
 @njit(cache=True)
@@ -53,6 +60,27 @@ def affine_torque(G, rot, pos, ref, q, v, bias, limit, clip, out):
         if clip:
             acc = min(max(acc, -limit[j]), limit[j])
         out[j] = acc
+
+
+@njit(cache=True)
+def leash_reference(refs, start, pos, max_lag):
+    """Keep the position reference within ``max_lag`` (m) of the TCP ``pos``, in place.
+
+    If ``e = x_r - x`` of ``refs[start]`` is longer than ``max_lag``, the positions
+    ``refs[start:, :3]`` all move by ``-e (1 - max_lag / |e|)``: the reference of this substep
+    then lies on the sphere of radius ``max_lag`` around the TCP. ``|e|^2`` is ``np.dot``
+    (BLAS, the rounding of numpy's ``e @ e``), so the Python and the compiled paths agree bit
+    for bit.
+    """
+    error = np.empty(3)
+    for c in range(3):
+        error[c] = refs[start, c] - pos[c]
+    dist = math.sqrt(np.dot(error, error))
+    if dist > max_lag:
+        scale = 1.0 - max_lag / dist
+        for r in range(start, refs.shape[0]):
+            for c in range(3):
+                refs[r, c] -= error[c] * scale
 
 
 @njit(cache=True)
@@ -201,19 +229,20 @@ if _load_mujoco_library():
 
     @njit(cache=True)
     def _run_substeps(
-        model, data, G, refs, start, stop, sensed, rot, pos, q, v, bias, limit, clip, ctrl
+        model, data, G, refs, start, stop, leash, max_lag, rot, pos, q, v, bias, limit, clip, ctrl
     ):
         for i in range(start, stop):
-            if not sensed or i > start:
-                _mj_step1(model, data)
+            _mj_step1(model, data)
+            if leash and i == start:
+                leash_reference(refs, i, pos, max_lag)
             affine_torque(G, rot, pos, refs[i], q, v, bias, limit, clip, ctrl)
             _mj_step2(model, data)
 
     run_substeps = _run_substeps
-    """``run_substeps(model_address, data_address, G, refs, start, stop, sensed, rot, pos,
-    q, v, bias, limit, clip, ctrl)``: substeps ``start..stop-1`` of one control step, each
-    ``mj_step1``; ``ctrl[:] = tau`` (:func:`affine_torque` with ``refs[i]``); ``mj_step2``.
-    With ``sensed``, ``mj_step1`` of the first substep was already called (by Python, to
-    refresh ``G``). The arrays are live views into ``MjData``."""
+    """``run_substeps(model_address, data_address, G, refs, start, stop, leash, max_lag, rot,
+    pos, q, v, bias, limit, clip, ctrl)``: substeps ``start..stop-1`` of one control step,
+    each ``mj_step1``; at the first, with ``leash``, :func:`leash_reference` (``max_lag``)
+    on the TCP position it computed; ``ctrl[:] = tau`` (:func:`affine_torque` with
+    ``refs[i]``); ``mj_step2``. The arrays are live views into ``MjData``."""
 else:  # pragma: no cover - the wheels ship libmujoco next to the bindings
     run_substeps = None
