@@ -284,3 +284,24 @@ def test_leash_kernel_equals_the_numpy_expression() -> None:
         leash_reference(refs, start, pos, max_lag)
         np.testing.assert_array_equal(refs, expected)
     assert 0 < moved < 2000
+
+
+def test_operational_space_map_equals_its_formula_and_keeps_no_state() -> None:
+    """native.operational_space_map (preallocated workspace) is G = J^T Lambda P + N^T M Q."""
+    robot = PandaModel()
+    osc = OperationalSpaceController(robot)
+    rng = np.random.default_rng(6)
+    qs = [robot.neutral() + 0.3 * rng.normal(size=robot.model.nv) for _ in range(3)]
+    first = None
+    for q in [*qs, qs[0]]:
+        osc._update_model(q)
+        J = pin.computeFrameJacobian(
+            robot.model, robot.data, q, robot.tcp_id, pin.LOCAL_WORLD_ALIGNED
+        )
+        J, M = J[:, :N_ARM], pin.crba(robot.model, robot.data, q)[:N_ARM, :N_ARM]
+        lam = np.linalg.inv(J @ np.linalg.solve(M, J.T))
+        expected = J.T @ lam @ osc._P + (M - J.T @ lam @ J) @ osc._Q
+        np.testing.assert_allclose(osc._G, expected, rtol=1e-9, atol=1e-9)
+        if first is None:
+            first = osc._G.copy()
+    np.testing.assert_array_equal(osc._G, first)  # the same q again: the same G, bit for bit

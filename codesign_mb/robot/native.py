@@ -28,6 +28,7 @@ from numba import njit, types
 __all__ = [
     "affine_torque",
     "leash_reference",
+    "map_workspace",
     "operational_space_map",
     "plan_reference",
     "run_substeps",
@@ -169,36 +170,73 @@ def _cholesky_solve(L, B, X):
             X[i, c] = acc / L[i, i]
 
 
+def map_workspace(G: np.ndarray) -> np.ndarray:
+    """The ``work`` buffer of :func:`operational_space_map` for the map ``G`` (n, ns)."""
+    n, ns = G.shape
+    return np.empty(3 * n * n + 5 * 6 * n + 2 * 36 + 2 * n * ns)
+
+
 @njit(cache=True)
-def operational_space_map(J, M, P, Q, kd, iv, damping, G):
+def _view(work, start, rows, cols):
+    # A (rows, cols) C-contiguous view of work[start:], and where the next one starts.
+    stop = start + rows * cols
+    return work[start:stop].reshape((rows, cols)), stop
+
+
+@njit(cache=True)
+def operational_space_map(J, M, P, Q, kd, iv, damping, G, work):
     """``G = J^T Lambda P + N^T M Q`` of the affine law (osc module doc), in place.
 
     ``J`` (6, >= n) and ``M`` (>= n, >= n) are the TCP Jacobian and the inertia, of which
     the first ``n = G.shape[0]`` (arm) joints are used; ``Lambda = (J M^-1 J^T)^-1`` (damped
     by ``damping`` at a singularity), ``N^T M = M - J^T Lambda J``. ``P``'s ``qdot`` block
     (columns ``iv..iv+n``) is set to ``-K_d J`` (``kd``: the six task-space dampings) first.
+    ``work`` (:func:`map_workspace`) holds the intermediates, so a call allocates nothing;
+    the products are BLAS's, as with ``@``.
     """
-    n = G.shape[0]
-    Ja = np.ascontiguousarray(J[:, :n])
-    Ma = np.ascontiguousarray(M[:n, :n])
+    n, ns = G.shape
+    Ja, o = _view(work, 0, 6, n)
+    Ma, o = _view(work, o, n, n)
+    JaT, o = _view(work, o, n, 6)
+    L, o = _view(work, o, n, n)
+    MinvJt, o = _view(work, o, n, 6)
+    A, o = _view(work, o, 6, 6)
+    La, o = _view(work, o, 6, 6)
+    LamJ, o = _view(work, o, 6, n)
+    JtL, o = _view(work, o, n, 6)
+    NtM, o = _view(work, o, n, n)
+    T1, o = _view(work, o, n, ns)
+    T2, o = _view(work, o, n, ns)
     for r in range(6):
         for c in range(n):
-            P[r, iv + c] = -kd[r] * Ja[r, c]
-    L = np.zeros((n, n))
+            Ja[r, c] = J[r, c]
+            JaT[c, r] = J[r, c]
+            P[r, iv + c] = -kd[r] * J[r, c]
+    for r in range(n):
+        for c in range(n):
+            Ma[r, c] = M[r, c]
+    L[:, :] = 0.0
     _cholesky(Ma, L)  # the inertia (armature included) is positive definite
-    MinvJt = np.empty((n, 6))
-    _cholesky_solve(L, np.ascontiguousarray(Ja.T), MinvJt)
-    A = Ja @ MinvJt
-    La = np.zeros((6, 6))
+    _cholesky_solve(L, JaT, MinvJt)
+    np.dot(Ja, MinvJt, A)
+    La[:, :] = 0.0
     if not _cholesky(A, La):  # at a singularity: damped least squares
         for r in range(6):
             A[r, r] += damping
         _cholesky(A, La)
-    LamJ = np.empty((6, n))
     _cholesky_solve(La, Ja, LamJ)
-    JtL = np.ascontiguousarray(LamJ.T)  # J^T Lambda (Lambda is symmetric)
-    NtM = Ma - JtL @ Ja
-    G[:, :] = JtL @ P + NtM @ Q
+    for r in range(6):  # J^T Lambda (Lambda is symmetric)
+        for c in range(n):
+            JtL[c, r] = LamJ[r, c]
+    np.dot(JtL, Ja, NtM)
+    for r in range(n):
+        for c in range(n):
+            NtM[r, c] = Ma[r, c] - NtM[r, c]
+    np.dot(JtL, P, T1)
+    np.dot(NtM, Q, T2)
+    for r in range(n):
+        for c in range(ns):
+            G[r, c] = T1[r, c] + T2[r, c]
 
 
 def _load_mujoco_library() -> bool:

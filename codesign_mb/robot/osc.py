@@ -61,6 +61,7 @@ from codesign_mb.robot.model import GRIPPER_DOWN, N_ARM, PandaModel
 from codesign_mb.robot.native import (
     affine_torque,
     leash_reference,
+    map_workspace,
     operational_space_map,
     plan_reference,
     run_substeps,
@@ -190,6 +191,7 @@ class OperationalSpaceController:
         self._iv = slice(19 + nv, 19 + 2 * nv)
         self._G = np.zeros((N_ARM, 19 + 2 * nv))
         self._tau = np.zeros(N_ARM)
+        self._work = map_workspace(self._G)
         self._set_input_maps()
 
     @property
@@ -379,8 +381,9 @@ class OperationalSpaceController:
         J = pin.computeFrameJacobian(model, data, q, self.robot.tcp_id, pin.LOCAL_WORLD_ALIGNED)
         M = pin.crba(model, data, q)  # symmetric (both triangles filled)
         operational_space_map(
-            J, M, self._P, self._Q, self._kd6, self._iv.start, _SINGULAR_DAMPING, self._G
-        )
+            J, M, self._P, self._Q, self._kd6, self._iv.start, _SINGULAR_DAMPING, self._G,
+            self._work,
+        )  # fmt: skip
 
 
 def _orientation_error_map(rotation_ref: NDArray[np.float64]) -> NDArray[np.float64]:
