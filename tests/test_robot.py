@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import mujoco
 import numpy as np
 import pinocchio as pin
@@ -262,3 +264,44 @@ def test_compiled_substeps_equal_the_python_loop() -> None:
     np.testing.assert_array_equal(a.data.qpos, b.data.qpos)
     np.testing.assert_array_equal(a.data.qvel, b.data.qvel)
     np.testing.assert_array_equal(a.data.ctrl, b.data.ctrl)
+
+
+def test_leash_kernel_equals_the_numpy_expression() -> None:
+    """native.leash_reference is the numpy leash bit for bit (np.dot rounds like e @ e)."""
+    from codesign_mb.robot.native import leash_reference
+
+    rng = np.random.default_rng(5)
+    moved = 0
+    for _ in range(2000):
+        refs = rng.normal(size=(20, 6)) * 0.05
+        pos, start, max_lag = rng.normal(size=3) * 0.05, int(rng.integers(0, 20)), 0.05
+        expected = refs.copy()
+        error = expected[start, :3] - pos
+        dist = math.sqrt(error @ error)
+        if dist > max_lag:
+            expected[start:, :3] -= error * (1.0 - max_lag / dist)
+            moved += 1
+        leash_reference(refs, start, pos, max_lag)
+        np.testing.assert_array_equal(refs, expected)
+    assert 0 < moved < 2000
+
+
+def test_operational_space_map_equals_its_formula_and_keeps_no_state() -> None:
+    """native.operational_space_map (preallocated workspace) is G = J^T Lambda P + N^T M Q."""
+    robot = PandaModel()
+    osc = OperationalSpaceController(robot)
+    rng = np.random.default_rng(6)
+    qs = [robot.neutral() + 0.3 * rng.normal(size=robot.model.nv) for _ in range(3)]
+    first = None
+    for q in [*qs, qs[0]]:
+        osc._update_model(q)
+        J = pin.computeFrameJacobian(
+            robot.model, robot.data, q, robot.tcp_id, pin.LOCAL_WORLD_ALIGNED
+        )
+        J, M = J[:, :N_ARM], pin.crba(robot.model, robot.data, q)[:N_ARM, :N_ARM]
+        lam = np.linalg.inv(J @ np.linalg.solve(M, J.T))
+        expected = J.T @ lam @ osc._P + (M - J.T @ lam @ J) @ osc._Q
+        np.testing.assert_allclose(osc._G, expected, rtol=1e-9, atol=1e-9)
+        if first is None:
+            first = osc._G.copy()
+    np.testing.assert_array_equal(osc._G, first)  # the same q again: the same G, bit for bit

@@ -476,7 +476,7 @@ class ConveyorPickPlace(gym.Env):
     def _evaluate(self) -> tuple[float, bool, bool, bool, float]:
         gripper = self.sim.tcp_position()
         obj = self.sim.object_position()
-        distance = math.dist(obj, gripper)
+        distance = math.dist(obj.tolist(), gripper.tolist())  # lists: 1 us, not 5
         left, right = self.sim.finger_contacts()
         grasped = left and right
         rise = float(obj[2] - self.rest_height)

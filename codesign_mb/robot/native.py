@@ -18,13 +18,21 @@ from __future__ import annotations
 
 import ctypes
 import glob
+import math
 import os
 
 import mujoco
 import numpy as np
 from numba import njit, types
 
-__all__ = ["affine_torque", "operational_space_map", "plan_reference", "run_substeps"]
+__all__ = [
+    "affine_torque",
+    "leash_reference",
+    "map_workspace",
+    "operational_space_map",
+    "plan_reference",
+    "run_substeps",
+]
 
 
 @njit(cache=True)
@@ -53,6 +61,27 @@ def affine_torque(G, rot, pos, ref, q, v, bias, limit, clip, out):
         if clip:
             acc = min(max(acc, -limit[j]), limit[j])
         out[j] = acc
+
+
+@njit(cache=True)
+def leash_reference(refs, start, pos, max_lag):
+    """Keep the position reference within ``max_lag`` (m) of the TCP ``pos``, in place.
+
+    If ``e = x_r - x`` of ``refs[start]`` is longer than ``max_lag``, the positions
+    ``refs[start:, :3]`` all move by ``-e (1 - max_lag / |e|)``: the reference of this substep
+    then lies on the sphere of radius ``max_lag`` around the TCP. ``|e|^2`` is ``np.dot``
+    (BLAS, the rounding of numpy's ``e @ e``), so the Python and the compiled paths agree bit
+    for bit.
+    """
+    error = np.empty(3)
+    for c in range(3):
+        error[c] = refs[start, c] - pos[c]
+    dist = math.sqrt(np.dot(error, error))
+    if dist > max_lag:
+        scale = 1.0 - max_lag / dist
+        for r in range(start, refs.shape[0]):
+            for c in range(3):
+                refs[r, c] -= error[c] * scale
 
 
 @njit(cache=True)
@@ -141,36 +170,73 @@ def _cholesky_solve(L, B, X):
             X[i, c] = acc / L[i, i]
 
 
+def map_workspace(G: np.ndarray) -> np.ndarray:
+    """The ``work`` buffer of :func:`operational_space_map` for the map ``G`` (n, ns)."""
+    n, ns = G.shape
+    return np.empty(3 * n * n + 5 * 6 * n + 2 * 36 + 2 * n * ns)
+
+
 @njit(cache=True)
-def operational_space_map(J, M, P, Q, kd, iv, damping, G):
+def _view(work, start, rows, cols):
+    # A (rows, cols) C-contiguous view of work[start:], and where the next one starts.
+    stop = start + rows * cols
+    return work[start:stop].reshape((rows, cols)), stop
+
+
+@njit(cache=True)
+def operational_space_map(J, M, P, Q, kd, iv, damping, G, work):
     """``G = J^T Lambda P + N^T M Q`` of the affine law (osc module doc), in place.
 
     ``J`` (6, >= n) and ``M`` (>= n, >= n) are the TCP Jacobian and the inertia, of which
     the first ``n = G.shape[0]`` (arm) joints are used; ``Lambda = (J M^-1 J^T)^-1`` (damped
     by ``damping`` at a singularity), ``N^T M = M - J^T Lambda J``. ``P``'s ``qdot`` block
     (columns ``iv..iv+n``) is set to ``-K_d J`` (``kd``: the six task-space dampings) first.
+    ``work`` (:func:`map_workspace`) holds the intermediates, so a call allocates nothing;
+    the products are BLAS's, as with ``@``.
     """
-    n = G.shape[0]
-    Ja = np.ascontiguousarray(J[:, :n])
-    Ma = np.ascontiguousarray(M[:n, :n])
+    n, ns = G.shape
+    Ja, o = _view(work, 0, 6, n)
+    Ma, o = _view(work, o, n, n)
+    JaT, o = _view(work, o, n, 6)
+    L, o = _view(work, o, n, n)
+    MinvJt, o = _view(work, o, n, 6)
+    A, o = _view(work, o, 6, 6)
+    La, o = _view(work, o, 6, 6)
+    LamJ, o = _view(work, o, 6, n)
+    JtL, o = _view(work, o, n, 6)
+    NtM, o = _view(work, o, n, n)
+    T1, o = _view(work, o, n, ns)
+    T2, o = _view(work, o, n, ns)
     for r in range(6):
         for c in range(n):
-            P[r, iv + c] = -kd[r] * Ja[r, c]
-    L = np.zeros((n, n))
+            Ja[r, c] = J[r, c]
+            JaT[c, r] = J[r, c]
+            P[r, iv + c] = -kd[r] * J[r, c]
+    for r in range(n):
+        for c in range(n):
+            Ma[r, c] = M[r, c]
+    L[:, :] = 0.0
     _cholesky(Ma, L)  # the inertia (armature included) is positive definite
-    MinvJt = np.empty((n, 6))
-    _cholesky_solve(L, np.ascontiguousarray(Ja.T), MinvJt)
-    A = Ja @ MinvJt
-    La = np.zeros((6, 6))
+    _cholesky_solve(L, JaT, MinvJt)
+    np.dot(Ja, MinvJt, A)
+    La[:, :] = 0.0
     if not _cholesky(A, La):  # at a singularity: damped least squares
         for r in range(6):
             A[r, r] += damping
         _cholesky(A, La)
-    LamJ = np.empty((6, n))
     _cholesky_solve(La, Ja, LamJ)
-    JtL = np.ascontiguousarray(LamJ.T)  # J^T Lambda (Lambda is symmetric)
-    NtM = Ma - JtL @ Ja
-    G[:, :] = JtL @ P + NtM @ Q
+    for r in range(6):  # J^T Lambda (Lambda is symmetric)
+        for c in range(n):
+            JtL[c, r] = LamJ[r, c]
+    np.dot(JtL, Ja, NtM)
+    for r in range(n):
+        for c in range(n):
+            NtM[r, c] = Ma[r, c] - NtM[r, c]
+    np.dot(JtL, P, T1)
+    np.dot(NtM, Q, T2)
+    for r in range(n):
+        for c in range(ns):
+            G[r, c] = T1[r, c] + T2[r, c]
 
 
 def _load_mujoco_library() -> bool:
@@ -201,19 +267,20 @@ if _load_mujoco_library():
 
     @njit(cache=True)
     def _run_substeps(
-        model, data, G, refs, start, stop, sensed, rot, pos, q, v, bias, limit, clip, ctrl
+        model, data, G, refs, start, stop, leash, max_lag, rot, pos, q, v, bias, limit, clip, ctrl
     ):
         for i in range(start, stop):
-            if not sensed or i > start:
-                _mj_step1(model, data)
+            _mj_step1(model, data)
+            if leash and i == start:
+                leash_reference(refs, i, pos, max_lag)
             affine_torque(G, rot, pos, refs[i], q, v, bias, limit, clip, ctrl)
             _mj_step2(model, data)
 
     run_substeps = _run_substeps
-    """``run_substeps(model_address, data_address, G, refs, start, stop, sensed, rot, pos,
-    q, v, bias, limit, clip, ctrl)``: substeps ``start..stop-1`` of one control step, each
-    ``mj_step1``; ``ctrl[:] = tau`` (:func:`affine_torque` with ``refs[i]``); ``mj_step2``.
-    With ``sensed``, ``mj_step1`` of the first substep was already called (by Python, to
-    refresh ``G``). The arrays are live views into ``MjData``."""
+    """``run_substeps(model_address, data_address, G, refs, start, stop, leash, max_lag, rot,
+    pos, q, v, bias, limit, clip, ctrl)``: substeps ``start..stop-1`` of one control step,
+    each ``mj_step1``; at the first, with ``leash``, :func:`leash_reference` (``max_lag``)
+    on the TCP position it computed; ``ctrl[:] = tau`` (:func:`affine_torque` with
+    ``refs[i]``); ``mj_step2``. The arrays are live views into ``MjData``."""
 else:  # pragma: no cover - the wheels ship libmujoco next to the bindings
     run_substeps = None

@@ -50,7 +50,6 @@ per-substep linear algebra is gone.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -61,6 +60,8 @@ from numpy.typing import ArrayLike, NDArray
 from codesign_mb.robot.model import GRIPPER_DOWN, N_ARM, PandaModel
 from codesign_mb.robot.native import (
     affine_torque,
+    leash_reference,
+    map_workspace,
     operational_space_map,
     plan_reference,
     run_substeps,
@@ -190,6 +191,7 @@ class OperationalSpaceController:
         self._iv = slice(19 + nv, 19 + 2 * nv)
         self._G = np.zeros((N_ARM, 19 + 2 * nv))
         self._tau = np.zeros(N_ARM)
+        self._work = map_workspace(self._G)
         self._set_input_maps()
 
     @property
@@ -274,14 +276,6 @@ class OperationalSpaceController:
             self._run_python(q, v, ctrl, step, n, refs, clip, sensed)
         self._x_ref[:] = refs[-1, :3]
 
-    def _leash(self, refs: NDArray[np.float64], i: int, position: NDArray[np.float64]) -> None:
-        # Keep the reference within max_lag of the TCP (checked at each model refresh).
-        error = refs[i, :3] - position
-        dist = math.sqrt(error @ error)
-        max_lag = self.gains.max_lag_m
-        if dist > max_lag:
-            refs[i:, :3] -= error * (1.0 - max_lag / dist)
-
     def _run_native(
         self,
         q: NDArray[np.float64],
@@ -292,22 +286,23 @@ class OperationalSpaceController:
         clip: bool,
         sensed: SensedTcp,
     ) -> None:
-        # Python refreshes G (Pinocchio) at the first substep of each block, after that
-        # substep's mj_step1; the compiled loop runs the block.
+        # Python refreshes G (Pinocchio) before the first substep of each block; the compiled
+        # loop runs the block, the leash after the block's first mj_step1. The refresh reads
+        # q only, which mj_step1 leaves as is: the order of the Python loop's arithmetic.
         model, data = sensed.addresses
         rot, pos, bias = sensed.rotation, sensed.position, sensed.bias
         G, limit, period, k = self._G, self.torque_limit, self.model_period, self._k
+        max_lag = self.gains.max_lag_m
         i = 0
         while i < n:
             refresh = k % period == 0
             if refresh:
-                sensed.forward()
                 self._update_model(q)
-                self._leash(refs, i, pos)
             stop = min(n, i + period - k % period)
             run_substeps(
-                model, data, G, refs, i, stop, refresh, rot, pos, q, v, bias, limit, clip, ctrl
-            )
+                model, data, G, refs, i, stop, refresh, max_lag, rot, pos, q, v, bias, limit,
+                clip, ctrl,
+            )  # fmt: skip
             k += stop - i
             i = stop
         self._k = k
@@ -341,8 +336,8 @@ class OperationalSpaceController:
                 placement = place(model, data, fid)
                 rot, pos = placement.rotation.ravel(), placement.translation
                 bias = nle(model, data, q, v)
-            if refresh:
-                self._leash(refs, i, pos)
+            if refresh:  # keep the reference within max_lag of the TCP
+                leash_reference(refs, i, pos, self.gains.max_lag_m)
             k += 1
             affine_torque(G, rot, pos, refs[i], q, v, bias, limit, clip, ctrl)
             if step is not None:
@@ -386,8 +381,9 @@ class OperationalSpaceController:
         J = pin.computeFrameJacobian(model, data, q, self.robot.tcp_id, pin.LOCAL_WORLD_ALIGNED)
         M = pin.crba(model, data, q)  # symmetric (both triangles filled)
         operational_space_map(
-            J, M, self._P, self._Q, self._kd6, self._iv.start, _SINGULAR_DAMPING, self._G
-        )
+            J, M, self._P, self._Q, self._kd6, self._iv.start, _SINGULAR_DAMPING, self._G,
+            self._work,
+        )  # fmt: skip
 
 
 def _orientation_error_map(rotation_ref: NDArray[np.float64]) -> NDArray[np.float64]:

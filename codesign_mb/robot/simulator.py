@@ -93,6 +93,12 @@ class ConveyorSimulator:
         self._q = self.data.qpos[sc.arm_qpos]
         self._v = self.data.qvel[sc.arm_qvel]
         self._arm_ctrl = self.data.ctrl[sc.arm_actuators]
+        self._finger_ctrl = self.data.ctrl[sc.finger_actuators]
+        self._object_pos = self.data.qpos[sc.object_qpos][:3]
+        self._object_quat = self.data.qpos[sc.object_qpos][3:]
+        self._object_vel = self.data.qvel[sc.object_qvel][:3]
+        self._belt_surface = self.model.geom_surfacevel[sc.belt_geom]
+        self._stripes = self.data.mocap_pos[sc.stripes_mocap]
         # The inner loop splits each physics step around the torque computation: mj_step1
         # (kinematics, bias forces of the current state), then mj_step2 (constraints,
         # integration); identical to mj_step (tests/test_robot.py).
@@ -160,14 +166,13 @@ class ConveyorSimulator:
     def set_belt_speed(self, speed: float) -> None:
         """Belt surface speed along +y (m/s)."""
         self._belt_speed = float(speed)
-        self.model.geom_surfacevel[self.scene.belt_geom, 1] = self._belt_speed
+        self._belt_surface[1] = self._belt_speed
 
     def step(self, velocity: ArrayLike, close: bool) -> None:
         """One control period: track the TCP ``velocity`` (m/s) and open/close the gripper."""
-        d, sc = self.data, self.scene
         self.osc.set_velocity_command(velocity)
         self._closed = bool(close)
-        d.ctrl[sc.finger_actuators] = -self.finger_speed if close else self.finger_speed
+        self._finger_ctrl[:] = -self.finger_speed if close else self.finger_speed
         # Torque limits: the arm actuators' ctrlrange (the URDF effort limits) clamps.
         self.osc.run(
             self._q,
@@ -185,7 +190,7 @@ class ConveyorSimulator:
         self._belt_offset = (
             self._belt_offset + self._belt_speed * self.control_period_s
         ) % STRIPE_PERIOD
-        d.mocap_pos[sc.stripes_mocap, 1] = self._belt_offset
+        self._stripes[1] = self._belt_offset
         self._measure()
 
     # ----------------------------------------------------------------------------- readouts
@@ -208,14 +213,14 @@ class ConveyorSimulator:
         return float(self._q[N_ARM] + self._q[N_ARM + 1])
 
     def object_position(self) -> NDArray[np.float64]:
-        return self.data.qpos[self.scene.object_qpos][:3].copy()
+        return self._object_pos.copy()
 
     def object_velocity(self) -> NDArray[np.float64]:
         """Linear velocity of the object's centre (m/s, world frame)."""
-        return self.data.qvel[self.scene.object_qvel][:3].copy()
+        return self._object_vel.copy()
 
     def object_quaternion(self) -> NDArray[np.float64]:
-        return self.data.qpos[self.scene.object_qpos][3:].copy()
+        return self._object_quat.copy()
 
     def finger_contacts(self) -> tuple[bool, bool]:
         """Whether the left and the right finger touch the object (contacts of the last step)."""

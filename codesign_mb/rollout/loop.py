@@ -215,8 +215,21 @@ class _Record:
         if self.keys is None:
             return pd.DataFrame([])
         names = (*_HEAD, *self.keys)
-        columns = map(list, zip(*self.tuples, strict=True))
+        columns = map(_column, zip(*self.tuples, strict=True))
         return pd.DataFrame(dict(zip(names, columns, strict=True)))
+
+
+_KINDS = (frozenset({float, np.float64}), frozenset({int, np.int64}), frozenset({bool, np.bool_}))
+
+
+def _column(values: tuple[Any, ...]) -> NDArray[Any] | list[Any]:
+    """A record column for pandas: a numpy array where its values are all floats, all ints or
+    all bools (the dtype pandas would infer, without its per-element inference), else a list.
+    """
+    kinds = set(map(type, values))
+    if any(kinds <= kind for kind in _KINDS):
+        return np.array(values)
+    return list(values)
 
 
 def rollout(
