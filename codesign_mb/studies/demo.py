@@ -38,6 +38,29 @@ Progress = Callable[[int, int], None]
 """Called as ``progress(done, total)`` after each episode."""
 
 
+def _check_episodes(cfg: Any) -> None:
+    """Validate (and normalise) what both demos share: reliabilities, latency, episodes, seed."""
+    qs = tuple(cfg.reliabilities)
+    if not qs:
+        raise ValueError("reliabilities must hold at least one value")
+    for q in qs:
+        try:
+            QosRequest(q, 0)
+        except (TypeError, ValueError):
+            raise ValueError(f"reliabilities must be in [0, 1], got {q!r}") from None
+    object.__setattr__(cfg, "reliabilities", tuple(float(q) for q in qs))
+    for name in ("latency_steps", "episodes", "seed"):
+        value = getattr(cfg, name)
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ValueError(f"{name} must be an integer, got {value!r}")
+    if cfg.latency_steps < 0:
+        raise ValueError(f"latency_steps must be >= 0, got {cfg.latency_steps}")
+    if cfg.episodes < 1:
+        raise ValueError(f"episodes must be >= 1, got {cfg.episodes}")
+    if cfg.seed < 0:
+        raise ValueError(f"seed must be >= 0, got {cfg.seed}")
+
+
 @dataclass(frozen=True)
 class RobotDemoConfig:
     """Settings of ``codesign demo --scenario robot`` (config file table ``[robot_demo]``)."""
@@ -58,26 +81,7 @@ class RobotDemoConfig:
     """Worker processes (default: up to 2)."""
 
     def __post_init__(self) -> None:
-
-        qs = tuple(self.reliabilities)
-        if not qs:
-            raise ValueError("reliabilities must hold at least one value")
-        for q in qs:
-            try:
-                QosRequest(q, 0)
-            except (TypeError, ValueError):
-                raise ValueError(f"reliabilities must be in [0, 1], got {q!r}") from None
-        object.__setattr__(self, "reliabilities", tuple(float(q) for q in qs))
-        for name in ("latency_steps", "episodes", "seed"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int):
-                raise ValueError(f"{name} must be an integer, got {value!r}")
-        if self.latency_steps < 0:
-            raise ValueError(f"latency_steps must be >= 0, got {self.latency_steps}")
-        if self.episodes < 1:
-            raise ValueError(f"episodes must be >= 1, got {self.episodes}")
-        if self.seed < 0:
-            raise ValueError(f"seed must be >= 0, got {self.seed}")
+        _check_episodes(self)
         if not (math.isfinite(self.belt_speed_mps) and self.belt_speed_mps >= 0):
             raise ValueError(f"belt_speed_mps must be >= 0, got {self.belt_speed_mps}")
         ests = tuple(self.estimators)
@@ -171,27 +175,11 @@ class LqgDemoConfig:
             raise ValueError(
                 f"plant must be one of {', '.join(LINEAR_DEMO_PLANTS)}, got {self.plant!r}"
             )
-        qs = tuple(self.reliabilities)
-        if not qs:
-            raise ValueError("reliabilities must hold at least one value")
-        for q in qs:
-            try:
-                QosRequest(q, 0)
-            except (TypeError, ValueError):
-                raise ValueError(f"reliabilities must be in [0, 1], got {q!r}") from None
-        object.__setattr__(self, "reliabilities", tuple(float(q) for q in qs))
-        for name in ("latency_steps", "episodes", "horizon", "seed"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int):
-                raise ValueError(f"{name} must be an integer, got {value!r}")
-        if self.latency_steps < 0:
-            raise ValueError(f"latency_steps must be >= 0, got {self.latency_steps}")
-        if self.episodes < 1:
-            raise ValueError(f"episodes must be >= 1, got {self.episodes}")
+        _check_episodes(self)
+        if isinstance(self.horizon, bool) or not isinstance(self.horizon, int):
+            raise ValueError(f"horizon must be an integer, got {self.horizon!r}")
         if self.horizon < 1:
             raise ValueError(f"horizon must be >= 1, got {self.horizon}")
-        if self.seed < 0:
-            raise ValueError(f"seed must be >= 0, got {self.seed}")
 
 
 # Initial-state spread per plant (state units: m, rad, m/s, rad/s); costs are identities.
