@@ -1,6 +1,6 @@
 """Model-based QoS rules: ask for a packet only when the robot's prediction needs one.
 
-No learning. Both rules are :class:`~codesign_mb.adaptation.base.QosPolicy` objects: at step
+No learning. Both rules are :class:`~codesign_mb.network.qos.QosPolicy` objects: at step
 ``t`` they choose ``(q_t, tau_t)`` from what the robot holds, ``(y_{t-1}, zeta_{t-1})``
 (``eq_q_pol``), at the edge.
 

@@ -4,7 +4,7 @@ One step of the loop is what :func:`~codesign_mb.rollout.rollout` does per contr
 step: ``MpcController.act`` on the estimate, ``env.step`` through the
 :class:`~codesign_mb.network.wrapper.LinkObservationWrapper` (a :class:`BernoulliLink` under a
 static QoS), ``DelayCompensatingPredictor.estimate`` and the per-step record. Like
-:func:`codesign_mb.robot.bench.bench_env`, each timed repeat is paired with a replay of its own
+:func:`codesign_mb.bench.env.bench_env`, each timed repeat is paired with a replay of its own
 actuator commands by bare ``mj_step`` calls, timed right after it under the same load; the
 headline ``loop_physics_ratio`` is the loop's rate over the replay's (1 would mean everything
 but the physics is free).

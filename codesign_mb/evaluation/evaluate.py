@@ -320,7 +320,7 @@ def evaluate(
     controller, estimator, qos_policy:
         A :class:`~codesign_mb.control.base.Controller`, an
         :class:`~codesign_mb.estimation.base.Estimator` and a
-        :class:`~codesign_mb.adaptation.base.QosPolicy` (``None``: perfect, ``StaticQos()``),
+        :class:`~codesign_mb.network.qos.QosPolicy` (``None``: perfect, ``StaticQos()``),
         each an instance or a picklable factory (see the module docstring).
     env_config:
         The plant's config (e.g. ``ConveyorConfig``) or a zero-argument env factory.
