@@ -1,4 +1,7 @@
-"""Static QoS: the paper's baseline policy (the interface, :class:`QosPolicy`, is the network's)."""
+"""Static and random QoS: the paper's baseline and the reference that sends at random.
+
+The interface, :class:`QosPolicy`, is the network's.
+"""
 
 from __future__ import annotations
 
@@ -9,7 +12,7 @@ from numpy.typing import NDArray
 
 from codesign_mb.network.qos import QosPolicy, QosRequest
 
-__all__ = ["QosPolicy", "StaticQos"]
+__all__ = ["QosPolicy", "RandomQos", "StaticQos"]
 
 
 @dataclass(frozen=True)
@@ -28,3 +31,48 @@ class StaticQos:
 
     def request(self, observation: NDArray[np.float64], age: int) -> QosRequest:
         return self._request  # type: ignore[attr-defined]
+
+
+class RandomQos:
+    """Send each packet with probability ``probability``, blind to the data: a reference.
+
+    Each request is ``q = 1`` with probability ``p`` and ``q = 0`` otherwise, drawn
+    independently per step, so the mean requested reliability is ``p``: the same network
+    budget as a co-design policy whose average PDR is ``p``, spent without choosing *when*.
+    The draws come from the generator seeded by ``reset(seed=)``; ``reset()`` without a seed
+    continues the stream (an unseeded policy draws from fresh OS entropy).
+
+    Parameters
+    ----------
+    probability:
+        ``p`` in [0, 1], the chance that a packet is requested at all.
+    latency_steps:
+        The latency ``tau`` of every request (control steps; 1 is the paper's link).
+
+    Examples
+    --------
+    >>> policy = RandomQos(probability=0.25)
+    >>> policy.reset(seed=0)
+    >>> [policy.request(np.zeros(3), 0).reliability for _ in range(6)]
+    [0.0, 0.0, 1.0, 1.0, 0.0, 0.0]
+    """
+
+    def __init__(self, probability: float, latency_steps: int = 1) -> None:
+        p = float(probability)
+        if not 0.0 <= p <= 1.0:  # also rejects NaN
+            raise ValueError(f"probability must be in [0, 1], got {probability!r}")
+        self.probability = p
+        self._send = QosRequest(1.0, latency_steps)  # validates latency_steps
+        self._skip = QosRequest(0.0, latency_steps)
+        self.latency_steps = self._send.latency_steps
+        self._rng = np.random.default_rng()
+
+    def __repr__(self) -> str:
+        return f"RandomQos(probability={self.probability!r}, latency_steps={self.latency_steps})"
+
+    def reset(self, *, seed: int | None = None) -> None:
+        if seed is not None:
+            self._rng = np.random.default_rng(seed)
+
+    def request(self, observation: NDArray[np.float64], age: int) -> QosRequest:
+        return self._send if self._rng.random() < self.probability else self._skip

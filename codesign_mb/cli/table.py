@@ -19,6 +19,11 @@ Writes into ``OUT``:
     ``--pipeline model-free|model-based``, else of the best row (the least average reliability
     among rows with >= 98 % success, else the most successful row).
 
+Each plant's reference rows (``blind``, ``oracle``, ``static`` per stack, ``random`` per
+co-design row; :mod:`codesign_mb.studies.table_refs`) follow its own rows, marked in the
+``kind`` and ``reference`` columns and in the Markdown and drawn in grey on the Pareto plot;
+``--no-references`` leaves them out (quicker).
+
 A row whose checkpoint is missing is skipped with a warning on stderr and its ``status`` in
 the table (``--on-missing error``: the command fails before any episode, exit code 2). The
 files are written by :func:`codesign_mb.studies.table_figures.write_table_outputs`.
@@ -92,6 +97,17 @@ def table_command(
             help="A row whose checkpoint is missing: skip (warn, status column) or error.",
         ),
     ] = "skip",
+    references: Annotated[
+        bool | None,
+        typer.Option(
+            "--references/--no-references",
+            help=(
+                "Add the reference rows (blind q = 0, oracle q = 1 tau = 0, static q = 1 "
+                "tau = 1 per stack; random at each co-design row's reliability). Default: "
+                "yes for a pipeline's rows, no for rows given in a config."
+            ),
+        ),
+    ] = None,
     out: OutOption = Path("results/table"),
     as_json: JsonOption = False,
 ) -> None:
@@ -111,6 +127,7 @@ def table_command(
                 "seed": seed,
                 "workers": workers,
                 "on_missing": on_missing,
+                "references": references,
             },
             rename={"plant": "plants"},
         ),

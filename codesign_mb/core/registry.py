@@ -18,6 +18,7 @@ estimator  ``none``           ``estimation.base.PassThroughEstimator`` (stale ob
 estimator  ``mlp``/``lstm``   a learned estimator from ``checkpoint`` (``load_estimator``)
 estimator  ``predictor``      ``estimation.predictor.DelayCompensatingPredictor``
 qos        ``static``         ``adaptation.base.StaticQos`` (``options``)
+qos        ``random``         ``adaptation.base.RandomQos``: ``q = 1`` w.p. ``probability``
 qos        ``rule``           the covariance-triggered rule on a predictor replica
 qos        ``age_rule``       ``adaptation.rules.AgeTriggeredQos``
 qos        ``learned``        ``adaptation.learned.LearnedQosPolicy`` (``checkpoint``: folder)
@@ -131,6 +132,7 @@ KINDS: dict[str, dict[str, Kind]] = {
     },
     "qos": {
         "static": Kind("codesign_mb.adaptation.base:StaticQos"),
+        "random": Kind("codesign_mb.adaptation.base:RandomQos"),
         "rule": Kind("codesign_mb.rollout.compose:covariance_rule", takes_env=True),
         "age_rule": Kind("codesign_mb.adaptation.rules:AgeTriggeredQos"),
         "learned": Kind(

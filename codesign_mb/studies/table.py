@@ -5,10 +5,24 @@ A table is a list of :class:`~codesign_mb.studies.table_rows.TableRow` — a nam
 evaluated on one or more plants (:class:`~codesign_mb.studies.table_rows.TablePlant`, e.g. the
 conveyor at 0.2 and 0.6 m/s and with a variable belt) on the same seeded episodes (every row
 and plant gets the episode seeds of ``seed``). All episodes of all rows and plants share one
-pool of worker processes (:func:`~codesign_mb.evaluation.evaluate.run_jobs`).
+pool of worker processes (:func:`~codesign_mb.evaluation.evaluate.run_jobs`); cells that run
+the same components on the same plant run once.
+
+Every table of a pipeline's default rows also gets its reference rows
+(:mod:`~codesign_mb.studies.table_refs`; ``TableConfig.references``): ``blind`` (``q = 0``),
+``oracle`` (``q = 1``, ``tau = 0``) and ``static`` (``q = 1``, ``tau = 1``) for each stack of
+the table, and ``random`` for each co-design row (any QoS policy but ``static``): the same
+stack sending each packet with probability ``p``, that row's measured mean requested
+reliability on the same plant. The ``random`` rows run in a second pool, after the others.
 
 Columns of the summary (one row per table row and plant):
 
+``row``, ``plant``, ``scenario``
+    The row's name, the plant's label and the scenario (for now the plant's label).
+``kind``, ``reference``, ``reference_of``
+    ``"row"`` for the table's own rows, else the reference kind (``blind``, ``oracle``,
+    ``static``, ``random``) with ``reference`` true; ``reference_of``: the row whose
+    budget a ``random`` row spends.
 ``success_rate``, ``success_ci_low``, ``success_ci_high``
     Success with its 95 % Wilson interval.
 ``mean_requested_reliability``, ``delivered_fraction``
@@ -32,8 +46,9 @@ Columns of the summary (one row per table row and plant):
     default) or stops the run before any episode (``on_missing="error"``). A missing
     checkpoint is never replaced by another one.
 ``pareto``
-    Whether the row is on the Pareto front of its plant (no other row has at least its
-    success with at most its average reliability, one of them strictly; :func:`pareto_front`).
+    Whether the row is on the Pareto front of its plant's own rows (no other row has at least
+    its success with at most its average reliability, one of them strictly;
+    :func:`pareto_front`); a reference row never is.
 
 :data:`~codesign_mb.studies.table_rows.PIPELINES` maps a pipeline name to its default rows and
 :data:`~codesign_mb.studies.table_rows.PIPELINE_PLANTS` to its default plants (``model-free``:
@@ -50,7 +65,6 @@ summary, its Markdown, the Pareto plot and Fig. 5) are written by
 
 from __future__ import annotations
 
-import math
 import warnings
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
@@ -61,17 +75,26 @@ import pandas as pd
 from numpy.typing import ArrayLike, NDArray
 
 from codesign_mb.core.config import from_mapping
-from codesign_mb.core.registry import PlantSpec, build, make_plant, plant_factory
-from codesign_mb.evaluation.evaluate import rows_to_table, run_jobs, summarize
+from codesign_mb.core.registry import ComponentSpec, PlantSpec, build, make_plant, plant_factory
+from codesign_mb.evaluation.evaluate import rows_to_table, run_jobs
 from codesign_mb.network.link import BernoulliLink
 from codesign_mb.network.wrapper import LinkObservationWrapper
 from codesign_mb.rollout import rollout
 from codesign_mb.studies.table_cost import (
-    CPU_COLUMNS,
     TrainingCost,
     missing_checkpoints,
     timed_factory,
     training_cost,
+)
+from codesign_mb.studies.table_records import missing_record, record
+from codesign_mb.studies.table_refs import (
+    ROW_KIND,
+    Reference,
+    cell_key,
+    fixed_references,
+    random_name,
+    random_reference,
+    random_sources,
 )
 from codesign_mb.studies.table_rows import (
     PIPELINE_PLANTS,
@@ -79,7 +102,6 @@ from codesign_mb.studies.table_rows import (
     PLANT_PRESETS,
     TablePlant,
     TableRow,
-    stack_of,
 )
 
 __all__ = [
@@ -123,6 +145,10 @@ class TableConfig:
     on_missing:
         ``"skip"``: a row with a missing checkpoint is listed with its ``status`` and no
         figures; ``"error"``: the run stops before any episode, naming every missing one.
+    references:
+        Whether to add the reference rows (:mod:`~codesign_mb.studies.table_refs`: ``blind``,
+        ``oracle``, ``static`` per stack, ``random`` per co-design row); ``None``: for a
+        pipeline's default rows, not for ``rows`` given explicitly.
     """
 
     plants: tuple[TablePlant | str, ...] = ()
@@ -135,6 +161,7 @@ class TableConfig:
     timeline_row: str = ""
     best_min_success: float = 0.98
     on_missing: str = "skip"
+    references: bool | None = None
 
     def __post_init__(self) -> None:
         if self.pipeline not in PIPELINES:
@@ -159,17 +186,25 @@ class TableConfig:
             for i, r in enumerate(self.rows)
         )
         object.__setattr__(self, "rows", rows)
-        names = [r.name for r in self.table_rows()]
+        own = [r.name for r in self.table_rows()]
+        names = list(own)
+        if self.with_references():
+            names += [ref.row.name for ref in fixed_references(self.table_rows())]
+            names += [random_name(r) for r in random_sources(self.table_rows())]
         if len(set(names)) != len(names):
             raise ValueError(f"row names must be unique, got {names}")
-        if self.timeline_row and self.timeline_row not in names:
-            raise ValueError(f"timeline_row {self.timeline_row!r} is not a row: {names}")
+        if self.timeline_row and self.timeline_row not in own:
+            raise ValueError(f"timeline_row {self.timeline_row!r} is not a row: {own}")
         labels = [p.label for p in self.table_plants()]
         if len(set(labels)) != len(labels):
             raise ValueError(f"plant labels must be unique, got {labels}")
 
     def table_rows(self) -> tuple[TableRow, ...]:
         return self.rows or PIPELINES[self.pipeline]()
+
+    def with_references(self) -> bool:
+        """Whether the table gets its reference rows (see ``references``)."""
+        return not self.rows if self.references is None else bool(self.references)
 
     def table_plants(self) -> tuple[TablePlant, ...]:
         if self.plant is not None:
@@ -222,8 +257,10 @@ def pareto_front(success: ArrayLike, reliability: ArrayLike) -> NDArray[np.bool_
 def best_row(summary: pd.DataFrame, plant: str, *, min_success: float = 0.98) -> str | None:
     """The row of ``plant`` with the least average reliability among those with at least
     ``min_success``; if none, the most successful (ties: less reliability). ``None`` if no row
-    of ``plant`` was evaluated."""
+    of ``plant`` was evaluated. Reference rows (column ``reference``) are not candidates."""
     mine = summary[(summary["plant"] == plant) & (summary["status"] == "ok")]
+    if "reference" in mine:
+        mine = mine[~mine["reference"].astype(bool)]
     if mine.empty:
         return None
     good = mine[mine["success_rate"] >= min_success - 1e-12]
@@ -264,27 +301,40 @@ def run_table(
 
     Rows with a missing checkpoint are skipped with a ``RuntimeWarning`` and a ``status``
     (``on_missing="skip"``) or raise ``ValueError`` naming them all (``"error"``). The
-    summary has one row per (plant, row) in the config's order (see the module docstring);
-    the episodes table one row per episode, with ``plant`` and ``row``. ``progress`` wraps
-    the stream of finished episodes: ``progress(stream, total=..., description=...)``.
+    summary has one row per (plant, row) in the config's order, each plant's reference rows
+    after its own (:meth:`TableConfig.with_references`; see the module docstring); the
+    episodes table one row per episode, with ``plant`` and ``row``. The table's rows and the
+    fixed references share one pool; the ``random`` references, which need their co-design
+    row's measured reliability, a second one. ``progress`` wraps the stream of finished
+    episodes: ``progress(stream, total=..., description=...)``.
     """
     rows, plants = config.table_rows(), config.table_plants()
-    missing = _missing_rows(rows, config.on_missing)
-    ready = [row for row in rows if row.name not in missing]
-    costs = {row.name: training_cost(row) for row in ready}
-    cells = [(plant, row) for plant in plants for row in ready]
-    results = _run_cells(cells, config, progress)
-    by_cell = {(p.label, r.name): i for i, (p, r) in enumerate(cells)}
+    listed = [Reference(row, ROW_KIND) for row in rows]
+    if config.with_references():
+        listed += fixed_references(rows)
+    missing = _missing_rows(tuple(r.row for r in listed), config.on_missing)
+    why = {
+        (p.label, name): f"missing checkpoint: {', '.join(paths)}"
+        for p in plants
+        for name, paths in missing.items()
+    }
+    cells = [(p, r.row) for p in plants for r in listed if r.row.name not in missing]
+    tables = _run_cells(cells, config, progress, "table episodes")
+    per_plant = {p.label: list(listed) for p in plants}
+    if config.with_references():
+        randoms = _random_references(rows, plants, tables, per_plant, why)
+        tables.update(_run_cells(randoms, config, progress, "random reference episodes"))
+    costs: dict[str, TrainingCost] = {}
     summaries, episodes = [], []
     for plant in plants:
-        for row in rows:
-            i = by_cell.get((plant.label, row.name))
-            if i is None:
-                summaries.append(_missing_record(plant, row, missing[row.name]))
+        for ref in per_plant[plant.label]:
+            table = tables.get((plant.label, ref.row.name))
+            if table is None:
+                summaries.append(missing_record(plant, ref, why[(plant.label, ref.row.name)]))
                 continue
-            table = rows_to_table(results[i])
-            summaries.append(_record(plant, row, table, costs[row.name]))
-            episodes.append(table.assign(plant=plant.label, row=row.name))
+            cost = costs.setdefault(ref.row.name, training_cost(ref.row))
+            summaries.append(record(plant, ref, table, cost))
+            episodes.append(table.assign(plant=plant.label, row=ref.row.name))
     summary_frame = _mark_pareto(pd.DataFrame(summaries))
     episode_frame = (
         pd.concat(episodes, ignore_index=True)
@@ -292,6 +342,40 @@ def run_table(
         else pd.DataFrame(columns=["plant", "row"])
     )
     return summary_frame, episode_frame
+
+
+def _random_references(
+    rows: tuple[TableRow, ...],
+    plants: tuple[TablePlant, ...],
+    tables: Mapping[tuple[str, str], pd.DataFrame],
+    per_plant: dict[str, list[Reference]],
+    why: dict[tuple[str, str], str],
+) -> list[tuple[TablePlant, TableRow]]:
+    """The cells of the ``random`` references, at each co-design row's measured budget.
+
+    Appends every plant's ``random`` references to ``per_plant``; one whose co-design row was
+    not evaluated gets its reason in ``why`` and no cell.
+    """
+    cells = []
+    for plant in plants:
+        for row in random_sources(rows):
+            source = tables.get((plant.label, row.name))
+            if source is None:
+                idle = TableRow(random_name(row), row.controller, row.estimator, _RANDOM)
+                per_plant[plant.label].append(Reference(idle, "random", of=row.name))
+                why[(plant.label, idle.name)] = f"not run: {row.name!r} was not evaluated"
+                continue
+            ref = random_reference(
+                row,
+                float(source["mean_requested_reliability"].mean()),
+                float(source["mean_latency_steps"].mean()),
+            )
+            per_plant[plant.label].append(ref)
+            cells.append((plant, ref.row))
+    return cells
+
+
+_RANDOM = ComponentSpec("random")
 
 
 def _missing_rows(rows: tuple[TableRow, ...], on_missing: str) -> dict[str, list[str]]:
@@ -317,8 +401,16 @@ def _run_cells(
     cells: list[tuple[TablePlant, TableRow]],
     config: TableConfig,
     progress: Callable[..., Any] | None,
-) -> list[list[dict[str, Any]]]:
-    """The episodes of every (plant, row) cell, all in one pool of workers."""
+    description: str,
+) -> dict[tuple[str, str], pd.DataFrame]:
+    """The episodes table of every (plant, row) cell, by ``(plant label, row name)``.
+
+    All in one pool of workers; cells that run the same components on the same plant (a
+    reference equal to a table row, e.g. ``static``) are run once and share the episodes.
+    """
+    keys = [cell_key(plant.label, row) for plant, row in cells]
+    unique = list(dict.fromkeys(keys))
+    first = {key: cells[keys.index(key)] for key in unique}
     jobs = [
         (
             timed_factory("controller", row.controller),
@@ -328,100 +420,33 @@ def _run_cells(
             config.trials,
             config.seed,
         )
-        for plant, row in cells
+        for plant, row in (first[key] for key in unique)
     ]
-    results: list[list[dict[str, Any]]] = [[] for _ in cells]
+    results: list[list[dict[str, Any]]] = [[] for _ in jobs]
     if jobs:
         done = run_jobs(jobs, workers=config.workers)
         if progress is not None:
-            done = progress(done, total=len(jobs) * config.trials, description="table episodes")
+            done = progress(done, total=len(jobs) * config.trials, description=description)
         for j, episode in done:
             results[j].append(episode)
-    return results
-
-
-def _labels(plant: TablePlant, row: TableRow) -> dict[str, Any]:
+    tables = [rows_to_table(r) for r in results]
     return {
-        "row": row.name,
-        "plant": plant.label,
-        "pipeline": stack_of(row),
-        "controller": row.controller.kind,
-        "estimator": row.estimator.kind,
-        "qos": row.qos.kind,
-        "status": "ok",
+        (plant.label, row.name): tables[unique.index(key)]
+        for (plant, row), key in zip(cells, keys, strict=True)
     }
-
-
-def _paper(row: TableRow) -> dict[str, Any]:
-    return {
-        "paper_success_rate": row.paper_success_rate,
-        "paper_mean_reliability": row.paper_mean_reliability,
-    }
-
-
-def _missing_record(plant: TablePlant, row: TableRow, paths: list[str]) -> dict[str, Any]:
-    """The summary row of a row that was not run: its status, no figures."""
-    return {
-        **_labels(plant, row),
-        "status": f"missing checkpoint: {', '.join(paths)}",
-        "trials": 0,
-        "successes": 0,
-        **{c: math.nan for c in _NUMBERS},
-        "train_env_steps": math.nan,
-        "train_wall_time_s": math.nan,
-        "train_sources": "",
-        **_paper(row),
-    }
-
-
-def _record(
-    plant: TablePlant, row: TableRow, table: pd.DataFrame, cost: TrainingCost
-) -> dict[str, Any]:
-    """The summary row of one (plant, row) cell from its episodes.
-
-    ``mpc_failures`` is the MPC's failed solves summed over the episodes
-    (:func:`~codesign_mb.evaluation.evaluate.summarize`), NaN for a row without an MPC.
-    """
-    summary = summarize(table)
-    record: dict[str, Any] = {
-        **_labels(plant, row),
-        "trials": summary["trials"],
-        "successes": summary["successes"],
-        **{c: summary.get(c, math.nan) for c in _SUMMARY},
-        "train_env_steps": cost.env_steps,
-        "train_wall_time_s": cost.wall_time_s,
-        "train_sources": ", ".join(cost.sources)
-        + (f" (unknown: {', '.join(cost.unknown)})" if cost.unknown else ""),
-        **{c: float(table[c].mean()) for c in CPU_COLUMNS},
-        "eval_wall_time_s": float(table["wall_time_s"].sum()),
-    }
-    record["cpu_ms_per_step"] = float(sum(record[c] for c in CPU_COLUMNS))
-    record["mpc_failures"] = summary.get("mpc_failures", math.nan)
-    return {**record, **_paper(row)}
 
 
 def _mark_pareto(summary: pd.DataFrame) -> pd.DataFrame:
-    """Add the ``pareto`` column: the front of each plant (:func:`pareto_front`)."""
+    """Add the ``pareto`` column: the front of each plant's own rows (:func:`pareto_front`);
+    reference rows are never on it."""
     summary["pareto"] = False
     for label in summary["plant"].unique():
-        mask = (summary["plant"] == label).to_numpy()
+        mask = ((summary["plant"] == label) & ~summary["reference"].astype(bool)).to_numpy()
         summary.loc[mask, "pareto"] = pareto_front(
             summary.loc[mask, "success_rate"],
             summary.loc[mask, "mean_requested_reliability"],
         )
     return summary
-
-
-_SUMMARY = (
-    "success_rate",
-    "success_ci_low",
-    "success_ci_high",
-    "mean_requested_reliability",
-    "delivered_fraction",
-    "mean_age",
-    "mean_estimation_error",
-)
-_NUMBERS = (*_SUMMARY, *CPU_COLUMNS, "cpu_ms_per_step", "mpc_failures", "eval_wall_time_s")
 
 
 # -- Fig. 5: the QoS timeline ------------------------------------------------------------------

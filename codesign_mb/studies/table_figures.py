@@ -22,6 +22,7 @@ import pandas as pd
 from codesign_mb.core.results import atomic_write, write_results
 from codesign_mb.studies.figures import new_figure, save_png
 from codesign_mb.studies.table import TableConfig, qos_timeline, run_table, timeline_row_name
+from codesign_mb.studies.table_refs import ROW_KIND, draw_references, reference_legend
 
 __all__ = [
     "SUMMARY_COLUMNS",
@@ -35,7 +36,11 @@ __all__ = [
 
 SUMMARY_COLUMNS: tuple[str, ...] = (
     "plant",
+    "scenario",
     "row",
+    "kind",
+    "reference",
+    "reference_of",
     "status",
     "success_rate",
     "success_ci_low",
@@ -118,6 +123,8 @@ class _PointStyle:
         self.markers = dict(_PAIR_MARKERS)
         self.colours = dict(_QOS_COLOURS)
         self.handles: dict[str, Any] = {}
+        self.reference_kinds: set[str] = set()
+        self.stack_greys: dict[tuple[str, ...], str] = {}
 
     def __call__(self, r: pd.Series) -> tuple[str, str]:
         from matplotlib.lines import Line2D
@@ -155,14 +162,26 @@ def plot_pareto(
     ``summary`` has :func:`~codesign_mb.studies.table.run_table`'s columns ``row``,
     ``success_rate``, ``success_ci_low``, ``success_ci_high``, ``mean_requested_reliability``
     and ``pareto``; optional: ``plant`` (one panel each), ``status`` (rows not ``"ok"`` are
-    counted in the panel's title), ``controller`` and ``estimator`` (the marker; else
+    counted in the panel's title), ``kind`` (reference rows), ``controller`` and
+    ``estimator`` (the marker; else
     ``pipeline``, else the row), ``qos`` (the colour; else the row). ``reference`` points
     (columns ``success_rate`` and ``mean_requested_reliability``, e.g. the paper's Table I)
     are black crosses in every panel.
+
+    Reference rows (column ``kind`` other than ``"row"``,
+    :mod:`~codesign_mb.studies.table_refs`) are grey: ``blind`` a down triangle, ``oracle``
+    a star, ``static`` a hollow diamond, ``random`` a cross; per stack (controller and
+    estimator) a dotted line runs from ``blind`` through the ``random`` points (at their
+    ``p``) to ``static``: what sending at random gives for each budget, the line a co-design
+    row has to beat. They are never on the front.
     """
     from matplotlib.lines import Line2D
 
-    summary = summary.assign(plant=summary.get("plant", ""), status=summary.get("status", "ok"))
+    summary = summary.assign(
+        plant=summary.get("plant", ""),
+        status=summary.get("status", "ok"),
+        kind=summary.get("kind", ROW_KIND),
+    )
     plants = list(dict.fromkeys(summary["plant"])) or [""]
     style = _PointStyle(list(summary.columns))
     fig, axes = new_figure(1, len(plants), width=4.6, height=4.6, sharey=True)
@@ -179,11 +198,12 @@ def plot_pareto(
         style.handles[reference_label] = Line2D([], [], ls="", marker="x", color="black")
     axes[0, 0].set_ylabel("success rate (95 % Wilson interval)")
     ring = Line2D([], [], ls="", marker="o", ms=10, mfc="none", mec="black")
+    handles = {**style.handles, **reference_legend(style.reference_kinds, style.stack_greys)}
     fig.legend(
-        [*style.handles.values(), ring],
-        [*style.handles.keys(), "Pareto-optimal (filled and ringed; dashed: the front)"],
+        [*handles.values(), ring],
+        [*handles.keys(), "Pareto-optimal (filled and ringed; dashed: the front)"],
         loc="outside lower center",
-        ncols=min(4, 2 * len(plants), len(style.handles) + 1),
+        ncols=min(4, 2 * len(plants), len(handles) + 1),
         fontsize=7,
     )
     if title:
@@ -193,6 +213,8 @@ def plot_pareto(
 
 def _pareto_panel(ax: Any, rows: pd.DataFrame, style: _PointStyle, plant: str) -> None:
     ok = rows[rows["status"] == "ok"]
+    draw_references(ax, ok[ok["kind"] != ROW_KIND], style.stack_greys, style.reference_kinds)
+    ok = ok[ok["kind"] == ROW_KIND]
     x_all = ok["mean_requested_reliability"].astype(float)
     drawn = ok[np.isfinite(x_all) & np.isfinite(ok["success_rate"].astype(float))]
     for _, r in drawn.iterrows():
@@ -224,8 +246,8 @@ def _pareto_panel(ax: Any, rows: pd.DataFrame, style: _PointStyle, plant: str) -
             ls="--",
         )
     notes = []
-    if len(rows) > len(ok):
-        notes.append(f"{len(rows) - len(ok)} rows not run")
+    if (rows["status"] != "ok").any():
+        notes.append(f"{int((rows['status'] != 'ok').sum())} rows not run")
     if len(ok) > len(drawn):
         notes.append(f"{len(ok) - len(drawn)} rows without an average reliability")
     ax.set_title(f"{plant}" + (f" ({'; '.join(notes)})" if notes else ""), fontsize=9)
@@ -242,6 +264,9 @@ def _pct(v: float) -> str:
 
 def markdown_table(summary: pd.DataFrame) -> str:
     """The summary as a Markdown table (percentages, interval, training cost, CPU per step).
+
+    Reference rows (column ``reference``) have their name in italics, followed by
+    ``(reference: KIND)``.
 
     A column ``MPC failures`` (failed solves summed over the episodes) is added when a row of
     the summary has an MPC.
@@ -267,10 +292,18 @@ def markdown_table(summary: pd.DataFrame) -> str:
             paper = f"{_pct(r['paper_success_rate'])} / {_pct(r['paper_mean_reliability'])}"
         if r["status"] != "ok":
             blanks = " |" * (6 if with_mpc else 5)
-            lines.append(f"| {r['plant']} | {r['row']} | {r['status']} |{blanks} {paper} |")
+            lines.append(f"| {r['plant']} | {_row_cell(r)} | {r['status']} |{blanks} {paper} |")
         else:
             lines.append("| " + " | ".join(_markdown_cells(r, with_mpc, paper)) + " |")
     return "\n".join(lines) + "\n"
+
+
+def _row_cell(r: pd.Series) -> str:
+    """The row's name; a reference row's in italics, marked with its kind."""
+    kind = str(r.get("kind", ROW_KIND))
+    if kind == ROW_KIND or not bool(r.get("reference", False)):
+        return str(r["row"])
+    return f"*{r['row']}* (reference: {kind})"
 
 
 def _markdown_cells(r: pd.Series, with_mpc: bool, paper: str) -> list[str]:
@@ -279,7 +312,7 @@ def _markdown_cells(r: pd.Series, with_mpc: bool, paper: str) -> list[str]:
     failures = r.get("mpc_failures", math.nan)
     return [
         str(r["plant"]),
-        str(r["row"]),
+        _row_cell(r),
         f"{_pct(r['success_rate'])} "
         f"[{100 * r['success_ci_low']:.1f}, {100 * r['success_ci_high']:.1f}]",
         _pct(r["mean_requested_reliability"]),

@@ -1,0 +1,99 @@
+"""The summary records of a table: one per (plant, row), from its episodes or why it has none.
+
+Columns: :mod:`codesign_mb.studies.table` (the module docstring); the labels ``row``,
+``plant``, ``scenario`` (the plant's label, until named scenarios exist), ``kind`` (``"row"``
+or a reference kind of :mod:`codesign_mb.studies.table_refs`), ``reference``,
+``reference_of`` (the row a ``random`` reference matches), ``pipeline``, ``controller``,
+``estimator``, ``qos`` and ``status``.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import pandas as pd
+
+from codesign_mb.evaluation.evaluate import summarize
+from codesign_mb.studies.table_cost import CPU_COLUMNS, TrainingCost
+from codesign_mb.studies.table_refs import ROW_KIND, Reference
+from codesign_mb.studies.table_rows import TablePlant, TableRow, stack_of
+
+__all__ = ["missing_record", "record"]
+
+
+def _labels(plant: TablePlant, ref: Reference) -> dict[str, Any]:
+    row = ref.row
+    return {
+        "row": row.name,
+        "plant": plant.label,
+        "scenario": plant.label,
+        "kind": ref.kind,
+        "reference": ref.kind != ROW_KIND,
+        "reference_of": ref.of,
+        "pipeline": stack_of(row),
+        "controller": row.controller.kind,
+        "estimator": row.estimator.kind,
+        "qos": row.qos.kind,
+        "status": "ok",
+    }
+
+
+def _paper(row: TableRow) -> dict[str, Any]:
+    return {
+        "paper_success_rate": row.paper_success_rate,
+        "paper_mean_reliability": row.paper_mean_reliability,
+    }
+
+
+def missing_record(plant: TablePlant, ref: Reference, status: str) -> dict[str, Any]:
+    """The summary row of a row that was not run: its status, no figures."""
+    return {
+        **_labels(plant, ref),
+        "status": status,
+        "trials": 0,
+        "successes": 0,
+        **{c: math.nan for c in _NUMBERS},
+        "train_env_steps": math.nan,
+        "train_wall_time_s": math.nan,
+        "train_sources": "",
+        **_paper(ref.row),
+    }
+
+
+def record(
+    plant: TablePlant, ref: Reference, table: pd.DataFrame, cost: TrainingCost
+) -> dict[str, Any]:
+    """The summary row of one (plant, row) cell from its episodes.
+
+    ``mpc_failures`` is the MPC's failed solves summed over the episodes
+    (:func:`~codesign_mb.evaluation.evaluate.summarize`), NaN for a row without an MPC.
+    """
+    summary = summarize(table)
+    record: dict[str, Any] = {
+        **_labels(plant, ref),
+        "trials": summary["trials"],
+        "successes": summary["successes"],
+        **{c: summary.get(c, math.nan) for c in _SUMMARY},
+        "train_env_steps": cost.env_steps,
+        "train_wall_time_s": cost.wall_time_s,
+        "train_sources": ", ".join(cost.sources)
+        + (f" (unknown: {', '.join(cost.unknown)})" if cost.unknown else ""),
+        **{c: float(table[c].mean()) for c in CPU_COLUMNS},
+        "eval_wall_time_s": float(table["wall_time_s"].sum()),
+    }
+    record["cpu_ms_per_step"] = float(sum(record[c] for c in CPU_COLUMNS))
+    record["mpc_failures"] = summary.get("mpc_failures", math.nan)
+    return {**record, **_paper(ref.row)}
+
+
+_SUMMARY = (
+    "success_rate",
+    "success_ci_low",
+    "success_ci_high",
+    "mean_requested_reliability",
+    "delivered_fraction",
+    "mean_age",
+    "mean_estimation_error",
+)
+_NUMBERS = (*_SUMMARY, *CPU_COLUMNS, "cpu_ms_per_step", "mpc_failures", "eval_wall_time_s")
