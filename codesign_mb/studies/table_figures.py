@@ -203,7 +203,7 @@ def plot_pareto(
         [*handles.values(), ring],
         [*handles.keys(), "Pareto-optimal (filled and ringed; dashed: the front)"],
         loc="outside lower center",
-        ncols=min(4, 2 * len(plants), len(handles) + 1),
+        ncols=1 if len(plants) == 1 else min(4, 2 * len(plants), len(handles) + 1),
         fontsize=7,
     )
     if title:

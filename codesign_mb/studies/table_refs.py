@@ -168,9 +168,9 @@ def random_reference(row: TableRow, probability: float, latency_steps: float) ->
 _MARKERS = {"blind": "v", "oracle": "*", "static": "D", "random": "X"}
 _LABELS = {
     "blind": "blind (q = 0)",
-    "oracle": "oracle (q = 1, tau = 0)",
-    "static": "static (q = 1, tau = 1)",
-    "random": "random at a co-design row's PDR",
+    "oracle": "oracle (q = 1, τ = 0)",
+    "static": "static (q = 1, τ = 1)",
+    "random": "random (a co-design row's PDR)",
 }
 _STACK_GREYS = ("dimgray", "darkgray", "black", "silver")
 
@@ -201,11 +201,12 @@ def draw_references(
                 yerr=[[y - low], [high - y]] if np.isfinite([low, high]).all() else None,
                 fmt=_MARKERS.get(kind, "P"),
                 color=grey,
-                mfc="white" if kind == "static" else grey,
-                ms=10 if kind == "oracle" else 7,
+                mfc="none" if kind == "static" else grey,
+                ms={"oracle": 9, "static": 10}.get(kind, 7),
                 capsize=2,
                 lw=0.8,
-                zorder=1,
+                alpha=0.85,
+                zorder=3,  # above the rows: a reference often sits on a row (static: q = 1)
             )
             kinds.add(kind)
         line = stack[stack["kind"].isin(("blind", "random", "static"))]
@@ -222,15 +223,13 @@ def reference_legend(kinds: set[str], greys: dict[tuple[str, ...], str]) -> dict
     out: dict[str, Any] = {}
     for kind, label in _LABELS.items():
         if kind in kinds:
-            fill = "white" if kind == "static" else "dimgray"
-            out[f"reference: {label}"] = Line2D(
+            fill = "none" if kind == "static" else "dimgray"
+            out[f"ref.: {label}"] = Line2D(
                 [], [], ls="", marker=_MARKERS[kind], color="dimgray", mfc=fill
             )
     for stack, grey in greys.items():
         name = " ".join(stack)
         if len(stack) == 2:
             name = stack_label(ComponentSpec(stack[0]), ComponentSpec(stack[1]))
-        out[f"random sending, {name} (dotted: blind, random, static)"] = Line2D(
-            [], [], ls=":", color=grey
-        )
+        out[f"ref.: random sending, {name}"] = Line2D([], [], ls=":", color=grey)
     return out
