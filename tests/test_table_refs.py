@@ -282,3 +282,27 @@ def test_cli_json_has_the_fields_and_the_reference_rows(
     )
     assert quick.exit_code == 0, quick.output
     assert [r["kind"] for r in json.loads(quick.stdout)] == ["row", "row"]
+
+
+def test_report_keeps_reference_rows_off_the_pareto_front() -> None:
+    import pandas as pd
+
+    from codesign_mb.studies.report_sections import _tab_p_points
+
+    summary = pd.DataFrame(
+        {
+            "row": ["co-design", "blind", "oracle"],
+            "kind": ["row", "blind", "oracle"],
+            "plant": ["p", "p", "p"],
+            "trials": [10, 10, 10],
+            "success_rate": [0.9, 0.3, 1.0],
+            "ci_low": [0.6, 0.1, 0.7],
+            "ci_high": [1.0, 0.6, 1.0],
+            "mean_requested_reliability": [0.1, 0.0, 1.0],
+        }
+    )
+    points = _tab_p_points(summary, ["row", "plant"])
+    assert list(points["kind"]) == ["row", "blind", "oracle"]
+    # blind (less network) and oracle (more success) would dominate-or-tie as rows; as
+    # references they are never on the front, and the one real row is.
+    assert list(points["pareto"]) == [True, False, False]

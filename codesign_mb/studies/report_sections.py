@@ -245,6 +245,8 @@ def _rename_ci(summary: pd.DataFrame) -> pd.DataFrame:
 def _render_tab_p(frame: pd.DataFrame, out: Path, cfg: ReportConfig) -> Section:
     labels = labels_of(frame)
     summary = success_summary(frame, labels, confidence=cfg.confidence)
+    if "kind" in frame.columns and "row" in labels:  # reference rows: blind, oracle, ...
+        summary["kind"] = summary["row"].map(frame.drop_duplicates("row").set_index("row")["kind"])
     shown = summary[labels].copy()
     if "pipeline" in shown.columns:
         shown["pipeline"] = shown["pipeline"].map(pipeline_label)
@@ -300,9 +302,11 @@ def _tab_p_points(summary: pd.DataFrame, labels: list[str]) -> pd.DataFrame:
     )
     if "mean_requested_reliability" not in points.columns:
         points["mean_requested_reliability"] = math.nan
+    # Reference rows (blind, oracle, static, random) are drawn as such, never on the front.
+    points["kind"] = summary["kind"].astype(str) if "kind" in summary.columns else "row"
     points["pareto"] = False
     for plant in points["plant"].unique():
-        mask = (points["plant"] == plant).to_numpy()
+        mask = ((points["plant"] == plant) & (points["kind"] == "row")).to_numpy()
         points.loc[mask, "pareto"] = pareto_front(
             points.loc[mask, "success_rate"], points.loc[mask, "mean_requested_reliability"]
         )
