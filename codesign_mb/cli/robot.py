@@ -1,4 +1,9 @@
-"""``codesign render``: a GIF or MP4 of one conveyor episode (:mod:`codesign_mb.studies.render`)."""
+"""Robot commands: ``codesign render`` and ``codesign calibrate-perception``.
+
+``render`` writes a GIF or MP4 of one conveyor episode (:mod:`codesign_mb.studies.render`);
+``calibrate-perception`` measures the edge camera path and writes the perception error model's
+file (:mod:`codesign_mb.studies.perception`).
+"""
 
 from __future__ import annotations
 
@@ -19,7 +24,7 @@ from codesign_mb.cli.common import (
     progress_bar,
 )
 
-__all__ = ["register", "render"]
+__all__ = ["calibrate_perception", "register", "render"]
 
 
 def render(
@@ -36,8 +41,15 @@ def render(
     ] = "constant",
     obj: Annotated[str, typer.Option("--object", help="Object: cube or cylinder.")] = "cube",
     camera: Annotated[
-        str, typer.Option("--camera", help="Camera: overview or upstream.")
+        str, typer.Option("--camera", help="Camera: overview, upstream or edge.")
     ] = "overview",
+    show_detection: Annotated[
+        bool,
+        typer.Option(
+            "--show-detection",
+            help="Run the edge detector on each frame and draw it (the edge camera's view).",
+        ),
+    ] = False,
     steps: Annotated[
         int, typer.Option("--steps", help="Control steps to render (0: whole episode).")
     ] = 0,
@@ -55,6 +67,7 @@ def render(
             "profile": profile,
             "obj": obj,
             "camera": camera,
+            "show_detection": show_detection,
             "steps": steps,
             "fps": fps,
             "seed": seed,
@@ -75,6 +88,45 @@ def render(
     emit(summary, as_json=as_json, title="render")
 
 
+def calibrate_perception(
+    out: Annotated[Path, typer.Option("--out", "-o", help="Calibration file (.json).")] = Path(
+        "models/perception/edge_cube.json"
+    ),
+    obj: Annotated[str, typer.Option("--object", help="Object: cube or cylinder.")] = "cube",
+    seed_set_name: Annotated[
+        str, typer.Option("--seed-set", help="Named seed set (calibration: dev).")
+    ] = "dev",
+    sweep_frames: Annotated[
+        int, typer.Option("--sweep-frames", help="Frames of random object/arm placements.")
+    ] = 4000,
+    episodes: Annotated[
+        int, typer.Option("--episodes", help="Scripted episodes per belt speed.")
+    ] = 5,
+    as_json: JsonOption = False,
+) -> None:
+    """Measure the edge camera path's errors and write the perception error model's file."""
+    import shlex
+    import sys
+
+    from codesign_mb.core.seeds import seed_set
+    from codesign_mb.studies.perception import calibrate
+
+    command = "codesign " + shlex.join(sys.argv[1:])
+    with progress_bar("calibrate", disable=as_json) as progress:
+        summary = calibrate(
+            str(out),
+            seed=seed_set(seed_set_name),
+            object_kind=obj,
+            sweep_frames=sweep_frames,
+            episodes_per_speed=episodes,
+            command=command,
+            progress=progress,
+        )
+    note(f"wrote {summary['out']}")
+    emit(summary, as_json=as_json, title="perception calibration")
+
+
 def register(app: typer.Typer) -> None:
-    """Add ``codesign render`` to ``app``."""
+    """Add ``codesign render`` and ``codesign calibrate-perception`` to ``app``."""
     app.command()(cli_errors(render))
+    app.command("calibrate-perception")(cli_errors(calibrate_perception))
