@@ -28,10 +28,12 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from codesign_mb.core.config import from_mapping
-from codesign_mb.plants.conveyor_config import ConveyorConfig
+
+if TYPE_CHECKING:  # the names alone import no physics (the sweep and the CLI read them)
+    from codesign_mb.plants.conveyor_config import ConveyorConfig
 
 __all__ = [
     "DEFAULT_SCENARIO",
@@ -55,6 +57,8 @@ class Scenario:
 
     def config(self, **overrides: Any) -> ConveyorConfig:
         """The :class:`ConveyorConfig` of the preset with ``overrides`` on top (checked)."""
+        from codesign_mb.plants.conveyor_config import ConveyorConfig
+
         return from_mapping(
             ConveyorConfig, {**self.options, **overrides}, where=f"scenario {self.name}"
         )
