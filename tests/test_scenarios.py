@@ -422,3 +422,24 @@ def test_realistic_separates_blind_from_oracle() -> None:
     _, oracle = run_config(EvaluateConfig(scenario="realistic", reliability=1.0, trials=40))
     assert blind["success_rate"] <= 0.15
     assert oracle["success_rate"] >= 0.95
+
+
+@pytest.mark.parametrize(
+    "command",
+    [
+        ["evaluate", "-n", "1"],
+        ["table", "-n", "1"],
+        ["sweep"],
+        ["wifi", "capacity", "--trials", "1"],
+        ["train", "a"],
+    ],
+)
+def test_every_command_names_the_scenarios_on_an_unknown_one(command: list[str]) -> None:
+    from typer.testing import CliRunner
+
+    from codesign_mb.cli import app
+
+    result = CliRunner().invoke(app, [*command, "--scenario", "fast"])
+    assert result.exit_code == 2, result.output
+    assert "unknown scenario 'fast'" in result.output
+    assert "realistic" in result.output and "paper" in result.output
