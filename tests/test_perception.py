@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from codesign_mb.plants.perception import LIFTED_M, PerceptionCalibration, PerceptionErrorModel
+from codesign_mb.plants.camera_perception import LIFTED_M, CameraPerception, PerceptionCalibration
 from codesign_mb.robot.camera import FRAME_BUDGET_BYTES, PinholeCamera, segment_colour
 from codesign_mb.robot.scene import BELT_SURFACE_Z, OBJECTS, build_scene
 
@@ -97,7 +97,7 @@ def _calibration(**changes: object) -> PerceptionCalibration:
 
 
 def test_error_model_draws_its_calibrated_bias_noise_and_misses() -> None:
-    model = PerceptionErrorModel(_calibration())
+    model = CameraPerception(_calibration())
     rng = np.random.default_rng(1)
     truth = np.array([0.55, 0.3, 0.0825])
     draws = [model.sample(truth, rng) for _ in range(20_000)]
@@ -111,7 +111,7 @@ def test_error_model_draws_its_calibrated_bias_noise_and_misses() -> None:
 
 
 def test_error_model_view_occlusion_and_parallax() -> None:
-    model = PerceptionErrorModel(_calibration(std=(0.0, 0.0), bias=(0.0, 0.0)))
+    model = CameraPerception(_calibration(std=(0.0, 0.0), bias=(0.0, 0.0)))
     rng = np.random.default_rng(2)
     assert model.sample([0.5, 0.7, 0.0825], rng) is None  # out of view
     assert model.miss_probability([0.5, 0.0, 0.0825], gripper_position=[0.5, 0.01, 0.2]) == 0.9
@@ -119,7 +119,7 @@ def test_error_model_view_occlusion_and_parallax() -> None:
     lifted = [0.5, 0.2, 0.0825 + 2 * LIFTED_M]
     assert model.sample(lifted, rng, gripper_position=[0.5, 0.2, 0.1]) is None
     # Seen along the camera's ray, a raised object lands farther from the nadir on the plane.
-    model = PerceptionErrorModel(
+    model = CameraPerception(
         _calibration(
             std=(0.0, 0.0), bias=(0.0, 0.0), bias_gradient=((0, 0), (0, 0)), lifted_miss_rate=0.0
         )
@@ -138,7 +138,7 @@ def test_calibration_round_trips_through_json(tmp_path: Path) -> None:
 
 
 def test_shipped_calibration_loads_and_records_its_command() -> None:
-    model = PerceptionErrorModel.load("cube")
+    model = CameraPerception.load("cube")
     prov = model.calibration.provenance
     assert prov["command"].startswith("codesign calibrate-perception")
     assert json.dumps(prov)  # plain data
@@ -186,7 +186,7 @@ def test_error_model_matches_the_camera_path_on_test_frames() -> None:
 
     _needs_gl()
     rows = camera_path_rows(seed_set("test"), sweep_frames=500, episodes_per_speed=1)
-    model = PerceptionErrorModel.load("cube")
+    model = CameraPerception.load("cube")
     path = error_statistics(rows)
     drawn = error_statistics(model_rows(rows, model, np.random.default_rng(seed_set("test"))))
     print("camera path", path, "\nerror model", drawn)

@@ -55,9 +55,12 @@ import typer
 from codesign_mb.core.config import from_mapping, load_config_file
 
 __all__ = [
+    "SCENARIO_HELP",
+    "SCENARIO_NAMES",
     "ConfigOption",
     "JsonOption",
     "OutOption",
+    "ScenarioOption",
     "SeedOption",
     "cli_errors",
     "emit",
@@ -98,6 +101,23 @@ SeedOption = Annotated[
 JsonOption = Annotated[
     bool,
     typer.Option("--json", help="Print machine-readable JSON on stdout (no table, no progress)."),
+]
+SCENARIO_NAMES = ("paper", "realistic", "variable", "constant-0.2", "constant-0.6")
+"""The keys of :data:`codesign_mb.plants.scenarios.SCENARIOS`, here so that ``--help`` needs
+no physics import (a test checks they agree)."""
+
+SCENARIO_HELP = (
+    f"Conveyor scenario preset: {', '.join(SCENARIO_NAMES)} (configs/scenarios/NAME.toml)."
+)
+"""The first sentence of every ``--scenario`` option's help."""
+
+ScenarioOption = Annotated[
+    str | None,
+    typer.Option(
+        "--scenario",
+        help=f"{SCENARIO_HELP} \\[default: paper, on which README's numbers were measured]",
+        show_default=False,
+    ),
 ]
 OutOption = Annotated[
     Path,

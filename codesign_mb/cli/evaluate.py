@@ -16,6 +16,7 @@ from codesign_mb.cli.common import (
     ConfigOption,
     JsonOption,
     OutOption,
+    ScenarioOption,
     SeedOption,
     cli_errors,
     emit,
@@ -54,8 +55,9 @@ def evaluate_command(
     ] = 0,
     belt_speed: Annotated[
         float | None,
-        typer.Option("--belt-speed", help="Belt speed in m/s. [default: the env's]"),
+        typer.Option("--belt-speed", help="Belt speed in m/s. [default: the scenario's]"),
     ] = None,
+    scenario: ScenarioOption = None,
     trials: Annotated[int, typer.Option("--trials", "-n", help="Episodes (>= 1).")] = 100,
     seed: SeedOption = 0,
     workers: WorkersOption = None,
@@ -71,8 +73,8 @@ def evaluate_command(
     The summary (success rate with its 95% Wilson interval, mean requested reliability,
     delivered fraction, mean age, MPC solve times) is printed and written to
     OUT/NAME_summary.json. A config file may hold the options at top level or under
-    [evaluate], with the tables [evaluate.env] (ConveyorConfig), [evaluate.mpc]
-    (MpcConfig) and [evaluate.predictor].
+    [evaluate], with the tables [evaluate.env] (ConveyorConfig fields on top of the
+    --scenario preset), [evaluate.mpc] (MpcConfig) and [evaluate.predictor].
     """
     if ctx.invoked_subcommand is not None:
         return
@@ -91,6 +93,7 @@ def evaluate_command(
                 "reliability": reliability,
                 "latency_steps": latency_steps,
                 "belt_speed": belt_speed,
+                "scenario": scenario,
                 "trials": trials,
                 "seed": seed,
                 "workers": workers,

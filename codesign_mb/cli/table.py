@@ -43,6 +43,7 @@ from typing import Annotated, TextIO
 import typer
 
 from codesign_mb.cli.common import (
+    SCENARIO_HELP,
     ConfigOption,
     JsonOption,
     OutOption,
@@ -77,8 +78,18 @@ def table_command(
             "--plant",
             help=(
                 "A plant to evaluate on (repeatable): 0.2, 0.6 or variable (0.6 m/s with "
-                "speed steps and stops). Default: the pipeline's."
+                "speed steps and stops), or a scenario name. Default: the pipeline's."
             ),
+        ),
+    ] = None,
+    scenario: Annotated[
+        str | None,
+        typer.Option(
+            "--scenario",
+            help=f"{SCENARIO_HELP} Evaluates on that scenario's conveyor only (instead of "
+            "--plant). \\[default: the pipeline's plants, on the paper scenario's conveyor, on "
+            "which README's numbers were measured]",
+            show_default=False,
         ),
     ] = None,
     config: ConfigOption = None,
@@ -123,6 +134,7 @@ def table_command(
             {
                 "pipeline": pipeline,
                 "plant": tuple(plant) if plant else None,
+                "scenario": scenario,
                 "trials": trials,
                 "seed": seed,
                 "workers": workers,

@@ -31,6 +31,7 @@ from typing import Annotated, Any
 import typer
 
 from codesign_mb.cli.common import (
+    SCENARIO_HELP,
     ConfigOption,
     JsonOption,
     cli_errors,
@@ -99,12 +100,19 @@ def stage_config(
     seed: int | None,
     steps: int | None,
     estimator: str | None,
+    scenario: str | None = None,
 ) -> Any:
     """The stage's config: its section of ``config_file``, then the command-line overrides.
 
-    ``--set`` assignments first, then ``--seed``, ``--steps`` and ``--estimator``.
+    ``--scenario`` first (the plant becomes that scenario's conveyor), then the ``--set``
+    assignments, then ``--seed``, ``--steps`` and ``--estimator``.
     """
-    overrides = _overrides(assignments)
+    overrides: dict[str, Any] = {}
+    if scenario is not None:
+        from codesign_mb.plants.scenarios import scenario_options
+
+        overrides["plant"] = {"name": "conveyor", "options": scenario_options(scenario)}
+    overrides.update(_overrides(assignments))
     if seed is not None:
         overrides["seed"] = seed
     if steps is not None:
@@ -176,6 +184,15 @@ def train(
             "(mlp, lstm, none, predictor); its checkpoint comes from the config.",
         ),
     ] = None,
+    scenario: Annotated[
+        str | None,
+        typer.Option(
+            "--scenario",
+            help=f"{SCENARIO_HELP} The plant the stage trains on (before --set). \\[default: "
+            "the config's plant, the paper scenario's conveyor unless it says otherwise]",
+            show_default=False,
+        ),
+    ] = None,
     set_: Annotated[
         list[str] | None,
         typer.Option(
@@ -212,7 +229,13 @@ def train(
     if stage not in STAGES:
         raise ValueError(f"stage must be one of {', '.join(STAGES)}, got {stage!r}")
     cfg = stage_config(
-        stage, config, assignments=set_ or [], seed=seed, steps=steps, estimator=estimator
+        stage,
+        config,
+        assignments=set_ or [],
+        seed=seed,
+        steps=steps,
+        estimator=estimator,
+        scenario=scenario,
     )
     out_dir = out or default_out(stage, cfg)
     result = run_stage(

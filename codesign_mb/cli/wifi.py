@@ -8,6 +8,7 @@ from typing import Annotated, Any
 import typer
 
 from codesign_mb.cli.common import (
+    SCENARIO_HELP,
     ConfigOption,
     JsonOption,
     OutOption,
@@ -100,6 +101,15 @@ def capacity_command(
             help="Plant and pipelines: conveyor (MuJoCo + MPC + predictor) or toy.",
         ),
     ] = "conveyor",
+    scenario: Annotated[
+        str | None,
+        typer.Option(
+            "--scenario",
+            help=f"{SCENARIO_HELP} The conveyor every robot runs (stack conveyor). "
+            "\\[default: the stack's plant: the paper scenario's conveyor at 0.6 m/s]",
+            show_default=False,
+        ),
+    ] = None,
     trials: Annotated[int, typer.Option("--trials", help="Episodes per point.")] = 4,
     max_steps: Annotated[
         int | None, typer.Option("--max-steps", help="Episode cap in steps (40 ms).")
@@ -131,6 +141,7 @@ def capacity_command(
             "channels": channels,
             "schedulers": schedulers,
             "stack": stack,
+            "scenario": scenario,
             "trials": trials,
             "max_steps": max_steps,
             "workers": workers,

@@ -75,7 +75,9 @@ class MpcController:
     Parameters
     ----------
     layout:
-        Name -> slice of the observation (``observation_layout`` of the plant).
+        Name -> slice of the observation (the plant's ``state_layout``, else its
+        ``observation_layout``). An ``object_vel`` slot beyond the end of a given observation
+        (an estimator that does not estimate the velocity) counts as absent.
     control_period_s:
         The plant's control period (40 ms).
     max_speed_mps:
@@ -83,7 +85,8 @@ class MpcController:
     config:
         :class:`MpcConfig`.
     belt_velocity:
-        Object velocity assumed when the observation carries none (world frame, m/s).
+        Object velocity assumed when the observation carries none (world frame, m/s): the
+        plant's nominal belt velocity.
     """
 
     def __init__(
@@ -134,7 +137,7 @@ class MpcController:
                 config, workspace_low=tuple(lo.tolist()), workspace_high=tuple(hi.tolist())
             )
         return cls(
-            plant.observation_layout,
+            getattr(plant, "state_layout", None) or plant.observation_layout,
             control_period_s=float(period),
             max_speed_mps=float(max_speed),
             config=config,
@@ -162,8 +165,9 @@ class MpcController:
         else:  # one entry: its mean is itself
             width = float(obs[self._width_index])
         obj = obs[self.layout["object_pos"]]
-        if "object_vel" in self.layout:
-            obj_vel = obs[self.layout["object_vel"]]
+        velocity = self._velocity_slot
+        if velocity is not None and obs.shape[0] >= velocity.stop:
+            obj_vel = obs[velocity]
         else:
             obj_vel = self.belt_velocity
         theta = self._parameters(grip_pos, grip_vel, width, obj, obj_vel)
@@ -201,6 +205,10 @@ class MpcController:
         indices = range(width.stop)[width] if width.stop is not None else range(0)
         self._width_index: int | None = indices[0] if len(indices) == 1 else None
         self._theta = np.empty(self.qp.n_theta)  # the layout of MpcQp.pack
+        velocity = self.layout.get("object_vel")
+        self._velocity_slot: slice | None = (
+            slice(*velocity.indices(velocity.stop)) if velocity is not None else None
+        )
 
     def _parameters(
         self,

@@ -100,7 +100,9 @@ class EstimatorFeatures:
         if networked.shape[-1] != self.obs_dim + 1:
             raise ValueError(
                 f"networked observation must have {self.obs_dim + 1} entries (plant observation "
-                f"+ age), got {networked.shape[-1]}"
+                f"+ age), got {networked.shape[-1]}: the estimator was trained on another plant "
+                "(the shipped checkpoints: the paper scenario's; `codesign train --scenario "
+                "NAME` trains for another)"
             )
         feats = networked.copy()
         feats[..., -1] = feats[..., -1] / self.age_scale

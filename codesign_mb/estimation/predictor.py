@@ -72,6 +72,10 @@ class DelayCompensatingPredictor:
         Standard deviations of the prior (the plant's ``remote_prior()``).
     max_delay_steps:
         Oldest measurement (in steps) the filter can still incorporate; older ones are ignored.
+    output_velocity:
+        With a layout without ``object_vel`` (the velocity is not perceived): append the
+        velocity estimate (3 entries) to the output, where the plant's ``state_layout`` puts
+        ``object_vel``, so a controller gets the estimated velocity rather than a nominal one.
 
     Examples
     --------
@@ -97,6 +101,7 @@ class DelayCompensatingPredictor:
         prior_position_std: float = 0.1,
         prior_velocity_std: float = 0.5,
         max_delay_steps: int = 64,
+        output_velocity: bool = False,
     ) -> None:
         if "object_pos" not in layout:
             raise ValueError("observation layout lacks object_pos")
@@ -131,6 +136,7 @@ class DelayCompensatingPredictor:
         self.prior_position_std = float(prior_position_std)
         self.prior_velocity_std = float(prior_velocity_std)
         self.max_delay_steps = int(max_delay_steps)
+        self.output_velocity = bool(output_velocity) and self._vel is None
         self.A, self.Q = constant_velocity_model(self.control_period_s, self.accel_std)
         if self._vel is None:
             self.C = np.hstack([np.eye(3), np.zeros((3, 3))])
@@ -153,6 +159,9 @@ class DelayCompensatingPredictor:
         plant = env.unwrapped
         cfg = getattr(plant, "config", None)
         kwargs: dict[str, Any] = {"control_period_s": float(plant.control_period_s)}
+        state_layout = getattr(plant, "state_layout", None) or {}
+        if "object_vel" in state_layout and "object_vel" not in plant.observation_layout:
+            kwargs["output_velocity"] = True  # estimated, not perceived: the controller reads it
         belt = getattr(plant, "belt_velocity", None)
         if belt is None and cfg is not None and hasattr(cfg, "belt_speed_mps"):
             belt = (0.0, float(cfg.belt_speed_mps), 0.0)  # the belt runs along +y
@@ -225,6 +234,9 @@ class DelayCompensatingPredictor:
     def _output(self, plant_obs: NDArray[np.float64]) -> NDArray[np.float64]:
         out = np.array(plant_obs, dtype=float, copy=True)
         x = self._kf._x  # read only: the filter's current mean
+        if self.output_velocity:  # position measured, velocity estimated: appended
+            out[self._pos] = x[:3]
+            return np.concatenate([out, x[3:]])
         if self._measured is not None:
             out[self._measured] = x if self._vel is not None else x[:3]
             return out

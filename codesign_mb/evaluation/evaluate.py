@@ -45,6 +45,8 @@ from codesign_mb.network.link import BernoulliLink
 from codesign_mb.network.qos import QosRequest
 from codesign_mb.network.wrapper import LinkObservationWrapper
 from codesign_mb.plants.conveyor import ConveyorConfig, ConveyorPickPlace
+from codesign_mb.plants.outcomes import FAILURE_REASONS, failure_reason
+from codesign_mb.plants.scenarios import DEFAULT_SCENARIO, get_scenario
 from codesign_mb.rollout import rollout
 
 __all__ = [
@@ -114,7 +116,10 @@ def summarize(table: pd.DataFrame, confidence: float = 0.95) -> dict[str, Any]:
     """Aggregate an :func:`evaluate` table: success rate with its Wilson interval, QoS, age, MPC.
 
     Solve-time figures are over episodes: the median of the episodes' medians, the median of
-    their 99th percentiles and the overall maximum.
+    their 99th percentiles and the overall maximum. With the conveyor's outcome columns:
+    ``mean_time_to_grasp_s`` (over the episodes that grasped) and ``failures_<reason>``, the
+    number of failed episodes per reason of
+    :data:`~codesign_mb.plants.outcomes.FAILURE_REASONS`.
     """
     if len(table) == 0:
         raise ValueError("cannot summarise an empty table")
@@ -141,6 +146,11 @@ def summarize(table: pd.DataFrame, confidence: float = 0.95) -> dict[str, Any]:
             out[column] = float(table[column].mean())
     if "max_age" in table:
         out["max_age"] = int(table["max_age"].max())
+    if "time_to_grasp_s" in table:
+        out["mean_time_to_grasp_s"] = float(table["time_to_grasp_s"].mean())  # NaN: no grasp
+    if "failure_reason" in table:
+        for reason in FAILURE_REASONS:
+            out[f"failures_{reason}"] = int((table["failure_reason"] == reason).sum())
     if "mpc_solve_ms_median" in table:
         out["mpc_solve_ms_median"] = float(table["mpc_solve_ms_median"].median())
         out["mpc_solve_ms_p99"] = float(table["mpc_solve_ms_p99"].median())
@@ -215,6 +225,18 @@ def episode_row(steps: pd.DataFrame) -> dict[str, Any]:
         row["lifted"] = bool(steps["lifted"].astype(bool).any())
     if "gripper_object_distance" in steps:
         row["min_gripper_object_distance"] = float(steps["gripper_object_distance"].min())
+    if "perceived" in steps:
+        row["perceived_fraction"] = float(steps["perceived"].astype(float).mean())
+    if "off_belt" in steps:  # the conveyor's latched outcome events (plants.outcomes)
+        last = steps.iloc[-1]
+        row["failure_reason"] = failure_reason(
+            row["success"],
+            missed_grasp=bool(last["missed_grasp"]),
+            dropped=bool(last["dropped"]),
+            off_belt=bool(last["off_belt"]),
+        )
+        grasp_s = float(last["time_to_grasp_s"])
+        row["time_to_grasp_s"] = grasp_s if grasp_s >= 0 else math.nan  # -1: never grasped
     return row
 
 
@@ -346,6 +368,9 @@ def evaluate(
         ``mean_latency_steps``, ``mean_qos_cost``, ``delivered_fraction``, ``mean_age``,
         ``max_age``, ``mean_estimation_error``, ``max_estimation_error``, the plant's
         ``lifted`` and ``min_gripper_object_distance`` when it reports them, the
+        conveyor's ``perceived_fraction`` (steps with a fresh detection at the edge),
+        ``failure_reason`` (``None`` for a success, else one of
+        :data:`~codesign_mb.plants.outcomes.FAILURE_REASONS`) and ``time_to_grasp_s``, the
         ``episode_metrics()`` of the controller, estimator and QoS policy (for the MPC:
         ``mpc_solves``, ``mpc_failures``, ``mpc_solve_ms_median``, ``mpc_solve_ms_p99``,
         ``mpc_solve_ms_max`` (wall clock), ``mpc_solve_cpu_ms_median``,
@@ -391,11 +416,14 @@ class EvaluateConfig:
     reliability, latency_steps:
         The QoS ``(q, tau)`` of the static policy.
     belt_speed_mps:
-        Belt speed (overrides ``env.belt_speed_mps``); ``None`` keeps the env's default.
+        Belt speed (overrides ``env.belt_speed_mps``); ``None`` keeps the scenario's.
     trials, seed, workers, max_steps:
         As in :func:`evaluate`.
+    scenario:
+        The conveyor scenario (:data:`codesign_mb.plants.scenarios.SCENARIOS`) whose options
+        the plant starts from; default ``"paper"``.
     env:
-        Overrides of the plant config (``ConveyorConfig`` fields), checked strictly.
+        Overrides of the scenario's plant config (``ConveyorConfig`` fields), checked strictly.
     mpc:
         Overrides of :class:`~codesign_mb.control.mpc.MpcConfig` (controller ``"mpc"``).
     predictor:
@@ -412,6 +440,7 @@ class EvaluateConfig:
     seed: int = 0
     workers: int | None = None
     max_steps: int | None = None
+    scenario: str = DEFAULT_SCENARIO
     env: dict[str, Any] = field(default_factory=dict)
     mpc: dict[str, Any] = field(default_factory=dict)
     predictor: dict[str, Any] = field(default_factory=dict)
@@ -437,13 +466,14 @@ class EvaluateConfig:
             int(self.max_steps) != self.max_steps or self.max_steps < 1
         ):
             raise ValueError(f"max_steps must be an integer >= 1, got {self.max_steps!r}")
+        get_scenario(self.scenario)  # an unknown name names the choices
         for name in ("env", "mpc", "predictor"):
             if not isinstance(getattr(self, name), Mapping):
                 raise ValueError(f"{name} must be a table of options, got {getattr(self, name)!r}")
 
     def env_config(self) -> Any:
-        """The plant config: ``ConveyorConfig`` from :attr:`env` and :attr:`belt_speed_mps`."""
-        data = dict(self.env)
+        """The plant config: the scenario's options, then :attr:`env`, :attr:`belt_speed_mps`."""
+        data = {**get_scenario(self.scenario).options, **self.env}
         if self.belt_speed_mps is not None:
             data["belt_speed_mps"] = float(self.belt_speed_mps)
         return from_mapping(ConveyorConfig, data, where="env")

@@ -37,6 +37,12 @@ class LinkObservationWrapper(gym.Wrapper):
     observation returned holds what the link delivered. ``info`` records the request, its
     cost ``C(q, tau)``, the delivery ``delta_t``, the age and the true remote state.
 
+    Edge perception: when the plant's ``info["perceived"]`` is False (a missed detection, no
+    object in view) there is no state to send: the link is stepped with ``q = 0`` (nothing is
+    delivered, what is held ages), while ``info`` still records the policy's request. The
+    plant may give the true remote state as ``info["remote_true"]`` (when its remote part is
+    perceived with errors); otherwise the remote part of its observation is the truth.
+
     Seeding: ``reset(seed=s)`` seeds the env with ``s`` and the link and QoS policy with
     independent streams spawned from ``s``; ``reset()`` without a seed continues all streams.
     """
@@ -109,7 +115,8 @@ class LinkObservationWrapper(gym.Wrapper):
         if not isinstance(qos, QosRequest):
             raise TypeError(f"qos_policy.request must return a QosRequest, got {qos!r}")
         remote = np.asarray(obs[self.remote_slice], dtype=float)
-        rx = self.link.step(remote, qos)
+        sent = info.get("perceived", True)
+        rx = self.link.step(remote, qos if sent else QosRequest(0.0, qos.latency_steps))
         self._last = rx
         out = np.empty(len(obs) + 1, dtype=self.observation_space.dtype)
         out[:-1] = obs
@@ -122,6 +129,6 @@ class LinkObservationWrapper(gym.Wrapper):
             qos_cost=float(self.qos_cost(qos)),
             delivered=rx.delivered,
             age=rx.age,
-            remote_true=remote,
+            remote_true=remote if info.get("remote_true") is None else info["remote_true"],
         )
         return out, info

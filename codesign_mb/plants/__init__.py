@@ -1,6 +1,10 @@
 """Plants: linear plants (python-control), the MuJoCo conveyor pick-and-place, a kinematic toy,
 and the belt-tracking double integrator of the linear sweep scenario.
 
+The conveyor's named scenarios (``paper``, ``realistic``, ``variable``, ``constant-*``) are in
+:mod:`codesign_mb.plants.scenarios`, its edge perception error models in
+:mod:`codesign_mb.plants.perception`, why an episode failed in :mod:`codesign_mb.plants.outcomes`.
+
 Each is registered with Gymnasium, so ``gymnasium.make("codesign_mb/ConveyorPickPlace-v0")``
 (or ``ToyConveyor-v0``, ``LinearPlant-v0`` with ``plant="pendulum"`` ...) gives it with its
 spec. Entry points are strings: importing this package imports neither MuJoCo nor

@@ -13,8 +13,20 @@ Observation (flat ``Box``, float64, clipped to generous finite bounds;
     gripper_pos   (3)  TCP position, m (robot base frame: x across the belt, y along it, z up)
     gripper_vel   (3)  TCP linear velocity, m/s
     finger_width  (1)  distance between the finger pads, m (0.08 open)
-    object_pos    (3)  perceived object centre, m, + N(0, perception_noise_std_m^2)  [remote]
+    object_pos    (3)  perceived object centre, m (perception error model)      [remote]
     object_vel    (3)  perceived object velocity, m/s (if ``perceive_velocity``)    [remote]
+
+Perception at the edge (:mod:`codesign_mb.plants.perception`): the paper's plant perceives the
+true state; a config may add noise, a bias and missed detections. On a missed detection (or
+before the object spawned) ``info["perceived"]`` is False, the edge sends nothing that step
+(the link wrapper asks the link for ``q = 0``) and ``object_pos`` keeps the last perceived
+position. ``info["remote_true"]`` is the true remote state (what estimation errors are
+measured against; before the object spawned: its start, at rest). The scenario options (belt
+speed range, random start and spawn time, disturbances) are in
+:mod:`codesign_mb.plants.conveyor_config`; the named presets in
+:mod:`codesign_mb.plants.scenarios`; why a failed episode failed in
+:mod:`codesign_mb.plants.outcomes` (``info``: ``missed_grasp``, ``dropped``, ``off_belt``,
+``time_to_grasp_s``).
 
 Action (``Box(4)`` in [-1, 1], float32): the TCP velocity command divided by
 ``max_gripper_speed_mps`` (3), and the grip (> 0 close, <= 0 open). Out-of-range actions are
@@ -48,10 +60,8 @@ Examples
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass
 from typing import Any, ClassVar
 
 import gymnasium as gym
@@ -59,9 +69,19 @@ import numpy as np
 from numpy.typing import NDArray
 
 from codesign_mb.core.config import from_mapping
+from codesign_mb.plants.belt_profiles import belt_speed_schedule
 from codesign_mb.plants.braking import keep_in_workspace
+from codesign_mb.plants.conveyor_config import BELT_PROFILES, ConveyorConfig, observation_layout
+from codesign_mb.plants.object_events import ObjectEvents
+from codesign_mb.plants.outcomes import OutcomeTracker
+from codesign_mb.plants.perception import (
+    GaussianPerception,
+    PerceptionErrorModel,
+    make_perception,
+    reset_perception,
+)
 from codesign_mb.robot.render import OffscreenRenderer
-from codesign_mb.robot.scene import BELT_HALF_WIDTH, BELT_SURFACE_Z, BELT_X, OBJECTS
+from codesign_mb.robot.scene import BELT_SURFACE_Z, BELT_X, OBJECTS
 from codesign_mb.robot.simulator import ConveyorSimulator
 
 __all__ = [
@@ -71,209 +91,6 @@ __all__ = [
     "belt_speed_schedule",
     "observation_layout",
 ]
-
-BELT_PROFILES = ("constant", "variable")
-
-
-@dataclass(frozen=True)
-class ConveyorConfig:
-    """Configuration of :class:`ConveyorPickPlace` (validated on construction).
-
-    Parameters
-    ----------
-    belt_speed_mps:
-        Nominal belt speed (m/s, >= 0); the paper uses 0.2 and 0.6.
-    belt_profile:
-        ``"constant"``, or ``"variable"``: every ``belt_change_steps`` (a seeded random
-        interval) the speed jumps to ``belt_speed_mps * U(1 - belt_speed_jitter,
-        1 + belt_speed_jitter)``, or to 0 (a stop) with probability ``belt_stop_probability``.
-    belt_change_steps:
-        Range ``(min, max)`` of the interval between speed changes (control steps).
-    belt_speed_jitter:
-        Relative amplitude of the speed changes (in [0, 1)).
-    belt_stop_probability:
-        Probability that a change is a stop.
-    object:
-        The object to pick: a key of :data:`codesign_mb.robot.scene.OBJECTS`.
-    horizon:
-        Episode length ``T`` (control steps); truncation after ``horizon`` steps.
-    n_substeps, timestep_s:
-        Physics / inner-control substeps per control step and their length (s); the control
-        period is their product (20 x 2 ms = 40 ms).
-    max_gripper_speed_mps:
-        TCP speed for an action of norm 1 per axis (m/s); must exceed the belt speed.
-    spawn_y_m:
-        Where the object is put on the belt, along it (m; upstream is negative y).
-    spawn_lateral_range_m:
-        Half-width of the uniform lateral (x) spawn interval around the belt centre (m).
-    perception_noise_std_m, velocity_noise_std_mps:
-        Standard deviations of the Gaussian noise on the perceived position and velocity.
-    perceive_velocity:
-        Whether the perceived object state includes its velocity.
-    lift_height_m, success_distance_m, success_hold_steps:
-        The success test (see the module docstring).
-    terminate_on_success:
-        End the episode (``terminated=True``) at success instead of running to the horizon.
-    grasp_force_n, finger_speed_mps:
-        Gripper force per finger (N) and finger speed (m/s).
-    osc_model_period:
-        Substeps between refreshes of the operational-space inertia matrices.
-    render_width, render_height, render_camera:
-        Frame size and camera of ``render()``.
-    """
-
-    belt_speed_mps: float = 0.2
-    belt_profile: str = "constant"
-    belt_change_steps: tuple[int, int] = (10, 30)
-    belt_speed_jitter: float = 0.3
-    belt_stop_probability: float = 0.2
-    object: str = "cube"
-    horizon: int = 100
-    n_substeps: int = 20
-    timestep_s: float = 0.002
-    max_gripper_speed_mps: float = 1.0
-    spawn_y_m: float = -0.45
-    spawn_lateral_range_m: float = 0.08
-    perception_noise_std_m: float = 0.0
-    velocity_noise_std_mps: float = 0.0
-    perceive_velocity: bool = True
-    lift_height_m: float = 0.05
-    success_distance_m: float = 0.03
-    success_hold_steps: int = 3
-    terminate_on_success: bool = False
-    grasp_force_n: float = 20.0
-    finger_speed_mps: float = 0.1
-    osc_model_period: int = 10
-    render_width: int = 480
-    render_height: int = 360
-    render_camera: str = "overview"
-
-    def __post_init__(self) -> None:
-        def number(name: str, *, low: float | None = None, strict: bool = False) -> None:
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, (int, float)):
-                raise ValueError(f"{name} must be a number, got {value!r}")
-            if not math.isfinite(value):
-                raise ValueError(f"{name} must be finite, got {value!r}")
-            if low is not None and (value <= low if strict else value < low):
-                raise ValueError(f"{name} must be {'>' if strict else '>='} {low}, got {value!r}")
-
-        def integer(name: str, low: int) -> None:
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
-                raise ValueError(f"{name} must be an integer, got {value!r}")
-            if value < low:
-                raise ValueError(f"{name} must be >= {low}, got {value!r}")
-
-        number("belt_speed_mps", low=0.0)
-        if self.belt_profile not in BELT_PROFILES:
-            raise ValueError(
-                f"belt_profile must be one of {', '.join(BELT_PROFILES)}, got {self.belt_profile!r}"
-            )
-        lo_hi = tuple(self.belt_change_steps)
-        if (
-            len(lo_hi) != 2
-            or not all(isinstance(v, (int, np.integer)) and not isinstance(v, bool) for v in lo_hi)
-            or not 1 <= lo_hi[0] <= lo_hi[1]
-        ):
-            raise ValueError(
-                "belt_change_steps must be two integers 1 <= min <= max, "
-                f"got {self.belt_change_steps!r}"
-            )
-        object.__setattr__(self, "belt_change_steps", (int(lo_hi[0]), int(lo_hi[1])))
-        number("belt_speed_jitter", low=0.0)
-        if self.belt_speed_jitter >= 1.0:
-            raise ValueError(f"belt_speed_jitter must be < 1, got {self.belt_speed_jitter!r}")
-        number("belt_stop_probability", low=0.0)
-        if self.belt_stop_probability > 1.0:
-            raise ValueError(
-                f"belt_stop_probability must be <= 1, got {self.belt_stop_probability!r}"
-            )
-        if self.object not in OBJECTS:
-            raise ValueError(f"object must be one of {', '.join(OBJECTS)}, got {self.object!r}")
-        integer("horizon", 1)
-        integer("n_substeps", 1)
-        number("timestep_s", low=0.0, strict=True)
-        number("max_gripper_speed_mps", low=0.0, strict=True)
-        if self.max_gripper_speed_mps <= self.belt_speed_mps:
-            raise ValueError(
-                f"max_gripper_speed_mps must exceed belt_speed_mps ({self.belt_speed_mps}) or "
-                f"the object cannot be caught, got {self.max_gripper_speed_mps!r}"
-            )
-        number("spawn_y_m")
-        if not -0.8 <= self.spawn_y_m <= 0.8:
-            raise ValueError(
-                f"spawn_y_m must be in [-0.8, 0.8] (on the belt), got {self.spawn_y_m!r}"
-            )
-        number("spawn_lateral_range_m", low=0.0)
-        if self.spawn_lateral_range_m > BELT_HALF_WIDTH - 0.03:
-            raise ValueError(
-                f"spawn_lateral_range_m must be <= {BELT_HALF_WIDTH - 0.03:.2f} (on the belt), "
-                f"got {self.spawn_lateral_range_m!r}"
-            )
-        number("perception_noise_std_m", low=0.0)
-        number("velocity_noise_std_mps", low=0.0)
-        if not isinstance(self.perceive_velocity, bool):
-            raise ValueError(f"perceive_velocity must be a bool, got {self.perceive_velocity!r}")
-        number("lift_height_m", low=0.0, strict=True)
-        number("success_distance_m", low=0.0, strict=True)
-        integer("success_hold_steps", 1)
-        if not isinstance(self.terminate_on_success, bool):
-            raise ValueError(
-                f"terminate_on_success must be a bool, got {self.terminate_on_success!r}"
-            )
-        number("grasp_force_n", low=0.0, strict=True)
-        number("finger_speed_mps", low=0.0, strict=True)
-        integer("osc_model_period", 1)
-        integer("render_width", 16)
-        integer("render_height", 16)
-
-    @property
-    def control_period_s(self) -> float:
-        """Control period (s): ``n_substeps * timestep_s``."""
-        return self.n_substeps * self.timestep_s
-
-    def replace(self, **changes: Any) -> ConveyorConfig:
-        """A copy with ``changes`` applied (and validated)."""
-        return dataclasses.replace(self, **changes)
-
-
-def observation_layout(config: ConveyorConfig | None = None) -> dict[str, slice]:
-    """Named slices of the flat observation for ``config`` (see the module docstring)."""
-    config = config or ConveyorConfig()
-    layout = {
-        "gripper_pos": slice(0, 3),
-        "gripper_vel": slice(3, 6),
-        "finger_width": slice(6, 7),
-        "object_pos": slice(7, 10),
-    }
-    if config.perceive_velocity:
-        layout["object_vel"] = slice(10, 13)
-    return layout
-
-
-def belt_speed_schedule(config: ConveyorConfig, rng: np.random.Generator) -> NDArray[np.float64]:
-    """Belt speed at each control step ``0..horizon`` (m/s) for one episode.
-
-    Constant profile: ``belt_speed_mps`` throughout (``rng`` is not used). Variable profile:
-    piecewise constant, starting at the nominal speed, changing after seeded random
-    intervals drawn from ``belt_change_steps`` (see :class:`ConveyorConfig`).
-    """
-    n = config.horizon + 1
-    speeds = np.full(n, config.belt_speed_mps)
-    if config.belt_profile == "constant":
-        return speeds
-    lo, hi = config.belt_change_steps
-    t = int(rng.integers(lo, hi + 1))
-    while t < n:
-        if rng.random() < config.belt_stop_probability:
-            speed = 0.0
-        else:
-            j = config.belt_speed_jitter
-            speed = config.belt_speed_mps * float(rng.uniform(1.0 - j, 1.0 + j))
-        speeds[t:] = speed
-        t += int(rng.integers(lo, hi + 1))
-    return speeds
 
 
 class ConveyorPickPlace(gym.Env):
@@ -285,6 +102,9 @@ class ConveyorPickPlace(gym.Env):
         :class:`ConveyorConfig` (default settings if None).
     render_mode:
         None or ``"rgb_array"`` (headless, EGL or OSMesa).
+    perception:
+        The edge's :class:`~codesign_mb.plants.perception.PerceptionErrorModel`; default: the
+        one ``config.perception_model`` names (Gaussian noise, bias and misses of the config).
 
     Attributes
     ----------
@@ -292,6 +112,10 @@ class ConveyorPickPlace(gym.Env):
         Named slices of the observation.
     remote_slice:
         The perceived object part, sent over the link (:class:`NetworkedPlant`).
+    state_layout:
+        Named slices of the state a controller acts on: the observation's, plus ``object_vel``
+        after them when the velocity is not perceived (an estimator estimates it; the
+        delay-compensating predictor appends its estimate there).
     horizon, control_period_s:
         ``T`` and the control period (s).
     """
@@ -299,7 +123,10 @@ class ConveyorPickPlace(gym.Env):
     metadata: ClassVar[dict[str, Any]] = {"render_modes": ["rgb_array"], "render_fps": 25}
 
     def __init__(
-        self, config: ConveyorConfig | None = None, render_mode: str | None = None
+        self,
+        config: ConveyorConfig | None = None,
+        render_mode: str | None = None,
+        perception: PerceptionErrorModel | None = None,
     ) -> None:
         if config is None:
             config = ConveyorConfig()
@@ -323,6 +150,10 @@ class ConveyorPickPlace(gym.Env):
         self.rest_height = BELT_SURFACE_Z + self.object_shape.half_height
         self.observation_layout: dict[str, slice] = observation_layout(config)
         n_obs = max(s.stop for s in self.observation_layout.values())
+        self.state_layout: dict[str, slice] = {
+            "object_vel": slice(n_obs, n_obs + 3),
+            **self.observation_layout,
+        }
         self.remote_slice: slice = slice(7, n_obs)
         # Generous finite bounds (the scene's extent, velocities far above the arm's);
         # observations are clipped into them.
@@ -356,6 +187,21 @@ class ConveyorPickPlace(gym.Env):
         self._held_steps = 0
         self._success = False
         self._spawn = np.array([BELT_X, config.spawn_y_m, self.rest_height])
+        self.perception = perception if perception is not None else make_perception(config)
+        self._exact_perception = (  # the paper's: the true centre, from the first step on
+            isinstance(self.perception, GaussianPerception)
+            and self.perception.exact
+            and config.spawn_delay_steps[1] == 0
+        )
+        self._perceived = True
+        self._last_perceived = self._spawn.copy()
+        self.events = ObjectEvents(config, self.sim, self.rest_height)
+        self.outcomes = OutcomeTracker(
+            object_half_width_m=self.object_shape.size[0],
+            lift_height_m=config.lift_height_m,
+            reach_y_m=float(self.workspace_high[1]),
+            control_period_s=self.control_period_s,
+        )
 
     @classmethod
     def from_options(cls, options: Mapping[str, Any] | None = None) -> ConveyorPickPlace:
@@ -393,12 +239,16 @@ class ConveyorPickPlace(gym.Env):
         cfg = self.config
         rng = self.np_random
         lateral = float(rng.uniform(-cfg.spawn_lateral_range_m, cfg.spawn_lateral_range_m))
-        self._spawn = np.array([BELT_X + lateral, cfg.spawn_y_m, self.rest_height])
         self._speeds = belt_speed_schedule(cfg, rng)
-        self.sim.reset(object_position=self._spawn, belt_speed=float(self._speeds[0]))
+        position = self.events.reset(rng, lateral)
+        self._spawn = self.events.start
+        reset_perception(self.perception, rng)
+        self.outcomes.reset()
+        self.sim.reset(object_position=position, belt_speed=float(self._speeds[0]))
         self._t = 0
         self._held_steps = 0
         self._success = False
+        self._last_perceived = self.remote_prior()[:3]
         obs = self._observation()
         return obs, self._info(*self._evaluate())
 
@@ -413,9 +263,15 @@ class ConveyorPickPlace(gym.Env):
         action = np.minimum(np.maximum(action, -1.0), 1.0)  # np.clip, without its dispatch
         velocity = action[:3] * self.config.max_gripper_speed_mps
         self._keep_in_workspace(velocity)
+        events = self.events
+        if self.config.disturbance_probability > 0:
+            events.before_step(self._t, self.np_random, any(self.sim.finger_contacts()))
         self.sim.step(velocity, close=bool(action[3] > 0.0))
         self._t += 1
-        self.sim.set_belt_speed(float(self._speeds[min(self._t, self.horizon)]))
+        speed = float(self._speeds[min(self._t, self.horizon)])
+        self.sim.set_belt_speed(speed)
+        if self._t <= events.spawn_step:
+            events.after_step(self._t, speed)
 
         terms = self._evaluate()
         distance, grasped, _, held, lift = terms
@@ -463,15 +319,26 @@ class ConveyorPickPlace(gym.Env):
         obs[0:3] = sim.tcp_position()
         obs[3:6] = sim.tcp_velocity()
         obs[6] = sim.finger_width()
-        obs[7:10] = sim.object_position()
-        if cfg.perception_noise_std_m > 0:
-            obs[7:10] += rng.normal(0.0, cfg.perception_noise_std_m, 3)
+        if self._exact_perception:  # the paper's perception: the true centre
+            obs[7:10] = sim.object_position()
+        else:
+            self._perceive()
+            obs[7:10] = self._last_perceived
         if cfg.perceive_velocity:
             obs[10:13] = sim.object_velocity()
             if cfg.velocity_noise_std_mps > 0:
                 obs[10:13] += rng.normal(0.0, cfg.velocity_noise_std_mps, 3)
         space = self.observation_space  # np.clip into the bounds, without its dispatch
         return np.minimum(np.maximum(obs, space.low, out=obs), space.high, out=obs)
+
+    def _perceive(self) -> None:
+        """Ask the perception model for this step's measurement (none before the spawn)."""
+        measured = None
+        if self.events.spawned(self._t):
+            measured = self.perception.sample(self.sim.object_position(), self.np_random)
+        self._perceived = measured is not None
+        if measured is not None:
+            self._last_perceived = np.asarray(measured, dtype=float).reshape(3)
 
     def _evaluate(self) -> tuple[float, bool, bool, bool, float]:
         gripper = self.sim.tcp_position()
@@ -483,6 +350,11 @@ class ConveyorPickPlace(gym.Env):
         lifted = rise >= self.config.lift_height_m
         held = lifted and distance <= self.config.success_distance_m
         lift = min(max(rise / self.config.lift_height_m, 0.0), 1.0)
+        if self.events.spawned(self._t):
+            self.outcomes.update(
+                self._t, object_pos=obj, rise=rise, touched=left or right, grasped=grasped,
+                closed=self.sim.gripper_closed, finger_width=self.sim.finger_width(),
+            )  # fmt: skip
         return distance, grasped, lifted, held, lift
 
     def _info(
@@ -498,4 +370,18 @@ class ConveyorPickPlace(gym.Env):
             "object_vel": self.sim.object_velocity(),
             "gripper_pos": self.sim.tcp_position(),
             "belt_speed": self.sim.belt_speed,
+            "perceived": self._perceived,
+            "remote_true": self._remote_true(),
+            **self.outcomes.info(),
         }
+
+    def _remote_true(self) -> NDArray[np.float64]:
+        """The true remote state (object position, and velocity if perceived); before the
+        object spawned, where it will appear, at rest."""
+        if self.events.spawned(self._t):
+            position, velocity = self.sim.object_position(), self.sim.object_velocity()
+        else:
+            position, velocity = self.events.start.copy(), np.zeros(3)
+        if not self.config.perceive_velocity:
+            return position
+        return np.concatenate([position, velocity])

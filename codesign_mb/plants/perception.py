@@ -1,193 +1,163 @@
-"""Edge perception's error model, calibrated from the camera path (:mod:`codesign_mb.robot.camera`).
+"""Perception at the edge: how the object's position the camera reports differs from the truth.
 
-Rendering a frame and detecting the object costs milliseconds; mass evaluations instead draw
-the perceived position from :class:`PerceptionErrorModel`, whose parameters
-(:class:`PerceptionCalibration`) were measured on the camera path by
-``codesign calibrate-perception`` (:mod:`codesign_mb.studies.perception`) and are shipped as
-``models/perception/edge_<object>.json``. The model reproduces what the detector does:
+DESIGN.md's data flow, step 1: a camera frame (or its calibrated error model) gives the
+perceived object position, with noise, bias and missed detections. The conveyor env asks a
+:class:`PerceptionErrorModel` once per control step for the measured position; ``None`` is a
+missed detection.
 
-- **out of view**: no detection when the object's centre is outside the camera's footprint
-  on the belt (``view_low`` .. ``view_high``, in x and y);
-- **missed detections**: with probability ``miss_rate`` when the gripper is far, and with the
-  miss rate of the cell of the object's horizontal offset from the gripper
-  (``occlusion_miss``, on a grid of ``occlusion_cell_m`` cells, ``dx, dy`` in
-  ``+-occlusion_extent_m``) when the gripper position is given (the arm hides the object);
-- **parallax**: the detector back-projects onto the plane of a resting object's centre
-  (``plane_z``), so an object above it (lifted) is seen along the camera's ray, scaled away
-  from the camera's nadir: exact geometry, from ``camera_position``;
-- **noise and bias** on x and y: ``bias + bias_gradient @ (xy - view_centre)`` (the blob's
-  centroid moves with the perspective across the view) plus independent Gaussian noise of
-  standard deviation ``std``; z is the plane's height (the detector's output).
+What a missed detection looks like downstream: the edge has no fresh measurement, so it sends
+no state packet that step. The env reports ``info["perceived"] = False``; the
+:class:`~codesign_mb.network.LinkObservationWrapper` then hands the link the request
+``(q = 0, tau)`` (nothing to deliver), so the robot keeps what it held and the age grows, as
+after a lost packet. The estimators need nothing new for that: a Kalman predictor predicts
+open loop, a learned one sees a larger age. The env's own observation keeps the last perceived
+position in its remote slice (the edge's last output), never a made-up value.
 
-Examples
---------
->>> model = PerceptionErrorModel.load("cube")
->>> rng = np.random.default_rng(0)
->>> measured = model.sample(np.array([0.5, -0.3, 0.0825]), rng)
->>> measured is None or bool(abs(measured[1] + 0.3) < 0.05)
-True
+Models are looked up by name in :data:`PERCEPTION_MODELS` (the config's
+``perception_model``); :class:`GaussianPerception` (``"gaussian"``) is the default. A model
+calibrated from rendered camera frames plugs in by adding its factory there.
 """
 
 from __future__ import annotations
 
-import json
-import math
-from dataclasses import asdict, dataclass, field
-from pathlib import Path
-from typing import Any
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import NDArray
 
-from codesign_mb.robot.assets import asset_path
+from codesign_mb.plants.camera_perception import CameraPerception
 
-__all__ = ["LIFTED_M", "PerceptionCalibration", "PerceptionErrorModel", "calibration_asset"]
+if TYPE_CHECKING:
+    from codesign_mb.plants.conveyor_config import ConveyorConfig
 
-LIFTED_M = 0.01
-"""An object more than this above its resting height is lifted (in the gripper)."""
+__all__ = [
+    "PERCEPTION_MODELS",
+    "GaussianPerception",
+    "PerceptionErrorModel",
+    "make_perception",
+    "reset_perception",
+]
 
 
-def calibration_asset(object_kind: str) -> str:
-    """Package-data path of the shipped calibration for ``object_kind``."""
-    return f"perception/edge_{object_kind}.json"
+@runtime_checkable
+class PerceptionErrorModel(Protocol):
+    """The edge's measurement of the object's position.
 
-
-@dataclass(frozen=True)
-class PerceptionCalibration:
-    """Measured error statistics of the edge camera path (lengths in m).
-
-    See the module docstring for how each field enters :class:`PerceptionErrorModel`.
+    ``sample(position, rng)`` takes the true centre (m, world frame, shape ``(3,)``) and the
+    env's generator and returns the measured centre (a new array) or ``None`` for a missed
+    detection. A model with per-episode state (a calibration bias) may also define
+    ``reset(rng)``; the env calls it at every episode start (:func:`reset_perception`).
     """
 
-    object_kind: str
-    plane_z: float
-    camera_position: tuple[float, float, float]
-    view_low: tuple[float, float]
-    view_high: tuple[float, float]
-    view_centre: tuple[float, float]
-    bias: tuple[float, float]
-    bias_gradient: tuple[tuple[float, float], tuple[float, float]]
-    std: tuple[float, float]
-    miss_rate: float
-    lifted_miss_rate: float
-    occlusion_cell_m: float
-    occlusion_extent_m: float
-    occlusion_miss: tuple[tuple[float, ...], ...]
-    provenance: dict[str, Any] = field(default_factory=dict)
-    """How it was measured: command, seeds, frame counts, measured summary."""
-
-    def __post_init__(self) -> None:
-        for name in ("miss_rate", "lifted_miss_rate"):
-            if not 0.0 <= getattr(self, name) <= 1.0:
-                raise ValueError(f"{name} must be in [0, 1], got {getattr(self, name)!r}")
-        if min(self.std) < 0:
-            raise ValueError(f"std must be >= 0, got {self.std!r}")
-        grid = np.asarray(self.occlusion_miss, dtype=float)
-        n = round(2 * self.occlusion_extent_m / self.occlusion_cell_m)
-        if grid.shape != (n, n) or grid.min() < 0 or grid.max() > 1:
-            raise ValueError(
-                f"occlusion_miss must be a {n}x{n} grid of probabilities, got shape {grid.shape}"
-            )
-
-    def to_json(self, path: str | Path) -> None:
-        """Write as JSON (the shipped file's format)."""
-        Path(path).parent.mkdir(parents=True, exist_ok=True)
-        Path(path).write_text(json.dumps(asdict(self), indent=1) + "\n")
-
-    @classmethod
-    def from_json(cls, path: str | Path) -> PerceptionCalibration:
-        """Read a file written by :meth:`to_json`."""
-        raw = json.loads(Path(path).read_text())
-
-        def tuples(value: Any) -> Any:
-            return tuple(tuples(v) for v in value) if isinstance(value, list) else value
-
-        return cls(**{k: v if k == "provenance" else tuples(v) for k, v in raw.items()})
+    def sample(
+        self, position: NDArray[np.float64], rng: np.random.Generator
+    ) -> NDArray[np.float64] | None: ...
 
 
-class PerceptionErrorModel:
-    """Draw the edge detector's output for a true object position (see the module docstring).
+def reset_perception(model: PerceptionErrorModel, rng: np.random.Generator) -> None:
+    """Start an episode of ``model``: call its ``reset(rng)`` if it has one."""
+    reset = getattr(model, "reset", None)
+    if callable(reset):
+        reset(rng)
+
+
+class GaussianPerception:
+    """Gaussian noise, a bias and i.i.d. missed detections (the default error model).
+
+    ``z = p + b + n`` with ``n ~ N(0, noise_std_m^2 I)`` drawn per step and
+    ``b = bias_m + N(0, bias_std_m^2 I)`` drawn per episode (:meth:`reset`); with probability
+    ``miss_probability`` per step there is no measurement (``None``). Draws from ``rng`` only
+    what is switched on, in the order: miss, noise (the paper's noise-only perception draws
+    exactly ``rng.normal(0, noise_std_m, 3)`` per step).
 
     Parameters
     ----------
-    calibration:
-        The measured statistics.
+    noise_std_m:
+        Per-axis standard deviation of the measurement noise (m).
+    bias_m:
+        Fixed bias (m, shape ``(3,)``).
+    bias_std_m:
+        Per-axis standard deviation of the per-episode random bias (m).
+    miss_probability:
+        Probability of a missed detection per step, in [0, 1].
     """
 
-    def __init__(self, calibration: PerceptionCalibration) -> None:
-        c = calibration
-        self.calibration = c
-        self._low = np.asarray(c.view_low, dtype=float)
-        self._high = np.asarray(c.view_high, dtype=float)
-        self._centre = np.asarray(c.view_centre, dtype=float)
-        self._bias = np.asarray(c.bias, dtype=float)
-        self._gradient = np.asarray(c.bias_gradient, dtype=float)
-        self._std = np.asarray(c.std, dtype=float)
-        self._camera = np.asarray(c.camera_position, dtype=float)
-        self._grid = np.asarray(c.occlusion_miss, dtype=float)
+    def __init__(
+        self,
+        noise_std_m: float = 0.0,
+        bias_m: tuple[float, float, float] = (0.0, 0.0, 0.0),
+        bias_std_m: float = 0.0,
+        miss_probability: float = 0.0,
+    ) -> None:
+        for name, value in (
+            ("noise_std_m", noise_std_m),
+            ("bias_std_m", bias_std_m),
+            ("miss_probability", miss_probability),
+        ):
+            if not (np.isfinite(value) and value >= 0):
+                raise ValueError(f"{name} must be >= 0, got {value!r}")
+        if miss_probability > 1:
+            raise ValueError(f"miss_probability must be <= 1, got {miss_probability!r}")
+        self.noise_std_m = float(noise_std_m)
+        self.bias_m = np.array(bias_m, dtype=float).reshape(3)
+        self.bias_std_m = float(bias_std_m)
+        self.miss_probability = float(miss_probability)
+        self.bias = self.bias_m.copy()
+        """This episode's bias ``b`` (m)."""
 
     @classmethod
-    def load(cls, object_kind: str = "cube") -> PerceptionErrorModel:
-        """The model of the shipped calibration of ``object_kind``."""
-        return cls(PerceptionCalibration.from_json(asset_path(calibration_asset(object_kind))))
+    def from_config(cls, config: ConveyorConfig) -> GaussianPerception:
+        """The model of a conveyor config's ``perception_*`` fields."""
+        return cls(
+            noise_std_m=config.perception_noise_std_m,
+            bias_m=config.perception_bias_m,
+            bias_std_m=config.perception_bias_std_m,
+            miss_probability=config.perception_miss_probability,
+        )
 
-    def miss_probability(
-        self, position: ArrayLike, gripper_position: ArrayLike | None = None
-    ) -> float:
-        """Probability of no detection at ``position`` (1 out of view)."""
-        p = np.asarray(position, dtype=float)
-        if np.any(p[:2] < self._low) or np.any(p[:2] > self._high):
-            return 1.0
-        c = self.calibration
-        if p[2] > c.plane_z + LIFTED_M:
-            return c.lifted_miss_rate
-        if gripper_position is None:
-            return c.miss_rate
-        offset = p[:2] - np.asarray(gripper_position, dtype=float)[:2]
-        if np.any(np.abs(offset) >= c.occlusion_extent_m):
-            return c.miss_rate
-        i, j = np.floor((offset + c.occlusion_extent_m) / c.occlusion_cell_m).astype(int)
-        return float(self._grid[i, j])
+    @property
+    def exact(self) -> bool:
+        """Whether the model reports the true position always (the paper's perception)."""
+        return (
+            self.noise_std_m == 0
+            and self.bias_std_m == 0
+            and self.miss_probability == 0
+            and not self.bias_m.any()
+        )
+
+    def reset(self, rng: np.random.Generator) -> None:
+        """Draw this episode's bias (uses ``rng`` only if ``bias_std_m > 0``)."""
+        self.bias = self.bias_m.copy()
+        if self.bias_std_m > 0:
+            self.bias += rng.normal(0.0, self.bias_std_m, 3)
 
     def sample(
-        self,
-        position: ArrayLike,
-        rng: np.random.Generator,
-        gripper_position: ArrayLike | None = None,
+        self, position: NDArray[np.float64], rng: np.random.Generator
     ) -> NDArray[np.float64] | None:
-        """The perceived position (3,) of an object at ``position`` (3,), or None if missed.
-
-        Parameters
-        ----------
-        position:
-            True object centre (m, world frame).
-        rng:
-            The caller's generator (two or three draws per call).
-        gripper_position:
-            The TCP position (m), for occlusion by the arm; None: the gripper is far.
-        """
-        p = np.asarray(position, dtype=float)
-        miss = self.miss_probability(p, gripper_position)
-        if miss >= 1.0 or (miss > 0.0 and rng.random() < miss):
+        if self.miss_probability > 0 and rng.random() < self.miss_probability:
             return None
-        c = self.calibration
-        height = self._camera[2] - c.plane_z
-        depth = self._camera[2] - p[2]
-        seen = self._camera[:2] + (p[:2] - self._camera[:2]) * (height / depth)
-        error = self._bias + self._gradient @ (p[:2] - self._centre)
-        xy = seen + error + self._std * rng.standard_normal(2)
-        return np.array([xy[0], xy[1], c.plane_z])
+        measured = np.asarray(position, dtype=float) + self.bias
+        if self.noise_std_m > 0:
+            measured += rng.normal(0.0, self.noise_std_m, 3)
+        return measured
 
-    def describe(self) -> dict[str, float]:
-        """Headline figures in mm and as a rate (for reports)."""
-        c = self.calibration
-        return {
-            "bias_x_mm": 1e3 * c.bias[0],
-            "bias_y_mm": 1e3 * c.bias[1],
-            "std_x_mm": 1e3 * c.std[0],
-            "std_y_mm": 1e3 * c.std[1],
-            "miss_rate": c.miss_rate,
-            "view_y_mm": 1e3 * (c.view_high[1] - c.view_low[1]),
-            "max_bias_across_view_mm": 1e3
-            * math.hypot(*(np.abs(self._gradient) @ ((self._high - self._low) / 2))),
-        }
+
+def _camera(config: ConveyorConfig) -> PerceptionErrorModel:
+    """The error model calibrated from the edge camera's rendered frames."""
+    return CameraPerception.load(config.object)
+
+
+PERCEPTION_MODELS: dict[str, Callable[[Any], PerceptionErrorModel]] = {
+    "gaussian": GaussianPerception.from_config,
+    "camera": _camera,
+}
+"""Perception model name (``ConveyorConfig.perception_model``) -> factory of the config.
+
+``"camera"`` is :class:`~codesign_mb.plants.camera_perception.CameraPerception`, calibrated from
+the edge camera's rendered frames (``codesign calibrate-perception``)."""
+
+
+def make_perception(config: ConveyorConfig) -> PerceptionErrorModel:
+    """The perception error model a conveyor config names."""
+    return PERCEPTION_MODELS[config.perception_model](config)

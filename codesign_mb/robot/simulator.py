@@ -163,6 +163,28 @@ class ConveyorSimulator:
         self.osc.reset(q, posture=self.q_home)
         self._measure()
 
+    def place_object(self, position: ArrayLike, velocity: ArrayLike = (0.0, 0.0, 0.0)) -> None:
+        """Put the object at ``position``, upright, moving at ``velocity`` (m/s), not turning.
+
+        A teleport, for the conveyor's scenarios: an object that appears on the belt mid-episode,
+        or one parked off the scene until then.
+        """
+        sc = self.scene
+        obj = self.data.qpos[sc.object_qpos]
+        obj[:3] = position
+        obj[3:] = (1.0, 0.0, 0.0, 0.0)
+        vel = self.data.qvel[sc.object_qvel]
+        vel[:] = 0.0
+        vel[:3] = velocity
+        mujoco.mj_forward(self.model, self.data)
+
+    def push_object(self, linear: ArrayLike, yaw_rate: float = 0.0) -> None:
+        """Add ``linear`` (m/s, world frame, shape ``(3,)``) to the object's velocity and
+        ``yaw_rate`` (rad/s) to its angular velocity about its own z axis: a slip or a turn."""
+        vel = self.data.qvel[self.scene.object_qvel]
+        vel[:3] += np.asarray(linear, dtype=float)
+        vel[5] += float(yaw_rate)
+
     def set_belt_speed(self, speed: float) -> None:
         """Belt surface speed along +y (m/s)."""
         self._belt_speed = float(speed)

@@ -25,10 +25,10 @@ __all__ = ["EvaluationOutputs", "evaluation_label", "run_evaluation"]
 
 
 def evaluation_label(config: EvaluateConfig) -> str:
-    """A short name of the configuration: ``"mpc+predictor q=0.8 tau=1"``."""
+    """A short name of the configuration: ``"mpc+predictor q=0.8 tau=1 (paper)"``."""
     return (
         f"{config.controller}+{config.estimator} q={config.reliability:g} "
-        f"tau={config.latency_steps}"
+        f"tau={config.latency_steps} ({config.scenario})"
     )
 
 

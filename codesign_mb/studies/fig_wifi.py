@@ -57,6 +57,7 @@ from codesign_mb.core.config import from_mapping
 from codesign_mb.core.registry import ComponentSpec, PlantSpec, build, make_plant
 from codesign_mb.evaluation import pool
 from codesign_mb.network.wrapper import LinkObservationWrapper
+from codesign_mb.plants.scenarios import scenario_options
 from codesign_mb.rollout import rollout_shared
 from codesign_mb.rollout.compose import covariance_rule
 from codesign_mb.wifi.cell import SharedChannel, generate_trace
@@ -205,6 +206,10 @@ class CapacityConfig:
         Robot stacks by name (``PipelineConfig`` tables); empty: the stack's.
     plant:
         The plant every robot runs (``PlantSpec`` table); ``None``: the stack's.
+    scenario:
+        A conveyor scenario (:data:`~codesign_mb.plants.scenarios.SCENARIOS`) every robot's
+        conveyor runs instead of ``plant`` (stack ``conveyor`` only); ``""``: the stack's
+        plant (``conveyor``: 0.6 m/s, otherwise the ``paper`` scenario).
     trials:
         Episodes per point.
     max_steps:
@@ -225,6 +230,7 @@ class CapacityConfig:
     stack: str = "conveyor"
     pipelines: dict[str, PipelineConfig] = field(default_factory=dict)
     plant: Any = None
+    scenario: str = ""
     trials: int = 4
     max_steps: int | None = None
     success_target: float = 0.95
@@ -265,6 +271,12 @@ class CapacityConfig:
             )
         object.__setattr__(self, "pipelines", pipelines)
         plant = self.plant if self.plant is not None else stack["plant"]
+        if self.scenario:
+            if self.plant is not None or self.stack != "conveyor":
+                raise ValueError(
+                    "scenario sets the conveyor's plant: give no plant, and stack conveyor"
+                )
+            plant = PlantSpec("conveyor", scenario_options(self.scenario))
         if isinstance(plant, Mapping):
             plant = from_mapping(PlantSpec, plant, where="plant")
         object.__setattr__(self, "plant", plant)

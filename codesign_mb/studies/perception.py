@@ -12,7 +12,7 @@ Frames come from two sources, each seeded from a root seed (``SeedSequence.spawn
 Every frame goes through the real camera path (render, sensor noise, segmentation, centroid,
 back-projection; :class:`~codesign_mb.robot.camera.EdgeCamera`) and gives one row (true
 position, gripper position, detection). :func:`fit_calibration` turns the rows into a
-:class:`~codesign_mb.plants.perception.PerceptionCalibration`; :func:`error_statistics`
+:class:`~codesign_mb.plants.camera_perception.PerceptionCalibration`; :func:`error_statistics`
 summarises rows (bias and std per axis, miss rate) the same way for the camera path and for
 the model, which is how the test compares them.
 """
@@ -30,12 +30,12 @@ import pandas as pd
 from numpy.typing import NDArray
 
 from codesign_mb.control.scripted import ScriptedPickController
-from codesign_mb.plants.conveyor import ConveyorConfig, ConveyorPickPlace
-from codesign_mb.plants.perception import (
+from codesign_mb.plants.camera_perception import (
     LIFTED_M,
+    CameraPerception,
     PerceptionCalibration,
-    PerceptionErrorModel,
 )
+from codesign_mb.plants.conveyor import ConveyorConfig, ConveyorPickPlace
 from codesign_mb.robot.camera import EdgeCamera
 from codesign_mb.robot.scene import BELT_HALF_LENGTH, BELT_HALF_WIDTH, BELT_SURFACE_Z, BELT_X
 from codesign_mb.robot.simulator import home_configuration
@@ -225,7 +225,7 @@ def fit_calibration(
 
 
 def model_rows(
-    rows: pd.DataFrame, model: PerceptionErrorModel, rng: np.random.Generator
+    rows: pd.DataFrame, model: CameraPerception, rng: np.random.Generator
 ) -> pd.DataFrame:
     """``rows`` with the detections replaced by the error model's draws at the same states."""
     out = rows.copy()
@@ -307,4 +307,4 @@ def calibrate(
     }
     calibration = dataclasses.replace(calibration, provenance=provenance)
     calibration.to_json(out)
-    return {"out": out, **PerceptionErrorModel(calibration).describe(), **summary}
+    return {"out": out, **CameraPerception(calibration).describe(), **summary}

@@ -72,6 +72,7 @@ from codesign_mb.core.config import from_mapping, to_mapping
 from codesign_mb.core.results import atomic_write, to_jsonable, write_results
 from codesign_mb.core.seeds import episode_seeds
 from codesign_mb.evaluation import pool
+from codesign_mb.plants.scenarios import SCENARIOS as CONVEYOR_SCENARIOS
 from codesign_mb.studies.sweep_ray import iter_ray
 
 __all__ = [
@@ -93,8 +94,11 @@ BACKENDS: tuple[str, ...] = ("serial", "local", "ray")
 SCENARIOS: dict[str, str] = {
     "linear": "codesign_mb.studies.sweep_linear",
     "conveyor": "codesign_mb.studies.sweep_conveyor",
+    **{name: "codesign_mb.studies.sweep_conveyor" for name in CONVEYOR_SCENARIOS},
 }
-"""Scenario name -> module defining ``run_trial``, ``Params`` and ``PIPELINES``."""
+"""Scenario name -> module defining ``run_trial``, ``Params`` and ``PIPELINES``. ``conveyor``
+runs the conveyor on its ``paper`` scenario; a conveyor scenario name
+(:data:`codesign_mb.plants.scenarios.SCENARIOS`) runs it on that scenario."""
 
 GRID_COLUMNS: tuple[str, ...] = (
     "scenario",

@@ -60,6 +60,8 @@ from codesign_mb.evaluation.evaluate import evaluate, summarize
 from codesign_mb.network.link import BernoulliLink, Reception
 from codesign_mb.network.qos import QosRequest
 from codesign_mb.plants.conveyor import ConveyorConfig
+from codesign_mb.plants.scenarios import DEFAULT_SCENARIO, scenario_options
+from codesign_mb.plants.scenarios import SCENARIOS as CONVEYOR_SCENARIOS
 from codesign_mb.studies.fig_wifi import CHANNEL_PRESETS, CapacityConfig, PipelineConfig, run_point
 from codesign_mb.studies.table_rows import all_rows, model_based_rows, model_free_rows
 from codesign_mb.wifi.config import SCHEDULERS
@@ -74,6 +76,7 @@ __all__ = [
     "SharedBernoulliLink",
     "channel_share",
     "pipeline_row",
+    "plant_options",
     "run_trial",
 ]
 
@@ -140,8 +143,9 @@ class Params:
     horizon:
         Episode length ``T`` in control steps; ``None`` keeps the plant's (100).
     belt_profile:
-        ``"constant"`` or ``"variable"`` (:class:`~codesign_mb.plants.conveyor.ConveyorConfig`):
-        the grid's belt speed is then the nominal one.
+        ``""`` (the conveyor scenario's), ``"constant"`` or ``"variable"``
+        (:class:`~codesign_mb.plants.conveyor.ConveyorConfig`): the grid's belt speed is then
+        the nominal one.
     plant_options:
         Other :class:`~codesign_mb.plants.conveyor.ConveyorConfig` fields (e.g. ``object``,
         ``perception_noise_std_m``), checked strictly; not the three above.
@@ -157,7 +161,7 @@ class Params:
 
     episodes: int = 1
     horizon: int | None = None
-    belt_profile: str = "constant"
+    belt_profile: str = ""
     plant_options: dict[str, Any] = field(default_factory=dict)
     link: str = "bernoulli"
     capacity_robots: float = 6.0
@@ -200,14 +204,24 @@ class Params:
 
     def plant_options_at(self, belt_speed_mps: float) -> dict[str, Any]:
         """The :class:`~codesign_mb.plants.conveyor.ConveyorConfig` fields of a grid point."""
-        options: dict[str, Any] = {
-            **self.plant_options,
-            "belt_speed_mps": float(belt_speed_mps),
-            "belt_profile": self.belt_profile,
-        }
+        options: dict[str, Any] = {**self.plant_options, "belt_speed_mps": float(belt_speed_mps)}
+        if self.belt_profile:
+            options["belt_profile"] = self.belt_profile
         if self.horizon is not None:
             options["horizon"] = self.horizon
         return options
+
+
+def plant_options(scenario: str, params: Params, belt_speed_mps: float) -> dict[str, Any]:
+    """The conveyor's options at a grid point: the sweep scenario's preset, then ``params``.
+
+    ``scenario`` is the sweep's: a conveyor scenario name
+    (:data:`~codesign_mb.plants.scenarios.SCENARIOS`) or ``"conveyor"`` (= ``"paper"``). With
+    a belt speed range (``realistic``) the grid's belt speed is the nominal one, what the robot
+    assumes; the episode's speed is drawn from the range.
+    """
+    preset = scenario if scenario in CONVEYOR_SCENARIOS else DEFAULT_SCENARIO
+    return {**scenario_options(preset), **params.plant_options_at(belt_speed_mps)}
 
 
 def channel_share(params: Params, n_robots: int) -> float:
@@ -277,7 +291,7 @@ def run_trial(config: Any, seed: int) -> dict[str, float | int]:
     params: Params = config.params if config.params is not None else Params()
     row = pipeline_row(config.pipeline)
     components = _factories(config.pipeline, row)
-    plant = PlantSpec("conveyor", params.plant_options_at(config.belt_speed_mps))
+    plant = PlantSpec("conveyor", plant_options(config.scenario, params, config.belt_speed_mps))
     cpu, wall = time.process_time(), time.perf_counter()
     if params.link == "bernoulli":
         metrics = _bernoulli_trial(params, plant, components, config.n_robots, seed)

@@ -79,6 +79,7 @@ from codesign_mb.core.registry import ComponentSpec, PlantSpec, build, make_plan
 from codesign_mb.evaluation.evaluate import rows_to_table, run_jobs
 from codesign_mb.network.link import BernoulliLink
 from codesign_mb.network.wrapper import LinkObservationWrapper
+from codesign_mb.plants.scenarios import SCENARIOS, get_scenario, scenario_options
 from codesign_mb.rollout import rollout
 from codesign_mb.studies.table_cost import (
     TrainingCost,
@@ -124,9 +125,14 @@ class TableConfig:
     ----------
     plants:
         The plants: names of :data:`PLANT_PRESETS` (``"0.2"``, ``"0.6"``, ``"variable"``) or
-        :class:`TablePlant` tables; empty means the pipeline's (:data:`PIPELINE_PLANTS`).
+        of conveyor scenarios (:data:`~codesign_mb.plants.scenarios.SCENARIOS`, labelled by
+        their name), or :class:`TablePlant` tables; empty means the pipeline's
+        (:data:`PIPELINE_PLANTS`).
     plant:
         One plant instead of ``plants`` (labelled from its options; kept for older configs).
+    scenario:
+        One conveyor scenario instead of ``plants`` (``codesign table --scenario NAME``);
+        ``""``: the pipeline's plants (on the ``paper`` scenario's conveyor).
     rows:
         The rows; empty means the default rows of ``pipeline``.
     pipeline:
@@ -153,6 +159,7 @@ class TableConfig:
 
     plants: tuple[TablePlant | str, ...] = ()
     plant: PlantSpec | None = None
+    scenario: str = ""
     rows: tuple[TableRow, ...] = ()
     pipeline: str = "model-free"
     trials: int = 100
@@ -176,8 +183,10 @@ class TableConfig:
             raise ValueError(f"best_min_success must be in [0, 1], got {self.best_min_success}")
         if self.on_missing not in ("skip", "error"):
             raise ValueError(f"on_missing must be 'skip' or 'error', got {self.on_missing!r}")
-        if self.plant is not None and self.plants:
-            raise ValueError("give plants or plant, not both")
+        if sum(map(bool, (self.plant is not None, self.plants, self.scenario))) > 1:
+            raise ValueError("give one of plants, plant or scenario")
+        if self.scenario:
+            get_scenario(self.scenario)  # an unknown name names the choices
         if isinstance(self.plant, Mapping):
             object.__setattr__(self, "plant", from_mapping(PlantSpec, self.plant, where="plant"))
         object.__setattr__(self, "plants", tuple(_plant(p, i) for i, p in enumerate(self.plants)))
@@ -209,6 +218,8 @@ class TableConfig:
     def table_plants(self) -> tuple[TablePlant, ...]:
         if self.plant is not None:
             return (TablePlant.of(self.plant),)
+        if self.scenario:
+            return (_scenario_plant(self.scenario),)
         if self.plants:
             return self.plants  # type: ignore[return-value]  # normalised in __post_init__
         return tuple(PLANT_PRESETS[k] for k in PIPELINE_PLANTS[self.pipeline])
@@ -218,15 +229,22 @@ def _plant(value: Any, index: int) -> TablePlant:
     if isinstance(value, TablePlant):
         return value
     if isinstance(value, str):
+        if value in SCENARIOS and value not in PLANT_PRESETS:
+            return _scenario_plant(value)
         if value not in PLANT_PRESETS:
             raise ValueError(
-                f"plants[{index}] must be one of {', '.join(PLANT_PRESETS)} or a table with a "
-                f"label, got {value!r}"
+                f"plants[{index}] must be one of {', '.join([*PLANT_PRESETS, *SCENARIOS])} or a "
+                f"table with a label, got {value!r}"
             )
         return PLANT_PRESETS[value]
     if isinstance(value, Mapping):
         return from_mapping(TablePlant, value, where=f"plants[{index}]")
     raise ValueError(f"plants[{index}] must be a name or a table, got {value!r}")
+
+
+def _scenario_plant(name: str) -> TablePlant:
+    """The conveyor of scenario ``name``, labelled by the name."""
+    return TablePlant(name, "conveyor", scenario_options(name))
 
 
 # -- the Pareto front, the best row, the run ---------------------------------------------------
