@@ -84,6 +84,9 @@ from codesign_mb.robot.render import OffscreenRenderer
 from codesign_mb.robot.scene import BELT_SURFACE_Z, BELT_X, OBJECTS
 from codesign_mb.robot.simulator import ConveyorSimulator
 
+_Terms = tuple[float, bool, bool, bool, float, NDArray[np.float64], NDArray[np.float64]]
+"""What :meth:`ConveyorPickPlace._evaluate` measures after a step."""
+
 __all__ = [
     "BELT_PROFILES",
     "ConveyorConfig",
@@ -250,7 +253,7 @@ class ConveyorPickPlace(gym.Env):
         self._success = False
         self._last_perceived = self.remote_prior()[:3]
         obs = self._observation()
-        return obs, self._info(*self._evaluate())
+        return obs, self._info(self._evaluate())
 
     def step(
         self, action: NDArray[np.floating]
@@ -274,14 +277,14 @@ class ConveyorPickPlace(gym.Env):
             events.after_step(self._t, speed)
 
         terms = self._evaluate()
-        distance, grasped, _, held, lift = terms
+        distance, grasped, _, held, lift = terms[:5]
         self._held_steps = self._held_steps + 1 if held else 0
         if self._held_steps >= self.config.success_hold_steps:
             self._success = True
         reward = (1.0 - math.tanh(10.0 * distance)) + 0.25 * grasped + grasped * lift + float(held)
         terminated = bool(self.config.terminate_on_success and self._success)
         truncated = self._t >= self.horizon and not terminated
-        return self._observation(), float(reward), terminated, truncated, self._info(*terms)
+        return self._observation(), float(reward), terminated, truncated, self._info(terms)
 
     def render(self) -> NDArray[np.uint8] | None:
         if self.render_mode != "rgb_array":
@@ -340,7 +343,8 @@ class ConveyorPickPlace(gym.Env):
         if measured is not None:
             self._last_perceived = np.asarray(measured, dtype=float).reshape(3)
 
-    def _evaluate(self) -> tuple[float, bool, bool, bool, float]:
+    def _evaluate(self) -> _Terms:
+        """``(distance, grasped, lifted, held, lift, object position, gripper position)``."""
         gripper = self.sim.tcp_position()
         obj = self.sim.object_position()
         distance = math.dist(obj.tolist(), gripper.tolist())  # lists: 1 us, not 5
@@ -355,33 +359,33 @@ class ConveyorPickPlace(gym.Env):
                 self._t, object_pos=obj, rise=rise, touched=left or right, grasped=grasped,
                 closed=self.sim.gripper_closed, finger_width=self.sim.finger_width(),
             )  # fmt: skip
-        return distance, grasped, lifted, held, lift
+        return distance, grasped, lifted, held, lift, obj, gripper
 
-    def _info(
-        self, distance: float, grasped: bool, lifted: bool, held: bool, lift: float
-    ) -> dict[str, Any]:
+    def _info(self, terms: _Terms) -> dict[str, Any]:
+        distance, grasped, lifted, held, _, obj, gripper = terms
+        velocity = self.sim.object_velocity()
         return {
             "success": self._success,
             "held": held,
             "lifted": lifted,
             "grasped": grasped,
             "gripper_object_distance": distance,
-            "object_pos": self.sim.object_position(),
-            "object_vel": self.sim.object_velocity(),
-            "gripper_pos": self.sim.tcp_position(),
+            "object_pos": obj,
+            "object_vel": velocity,
+            "gripper_pos": gripper,
             "belt_speed": self.sim.belt_speed,
             "perceived": self._perceived,
-            "remote_true": self._remote_true(),
+            "remote_true": self._remote_true(obj, velocity),
             **self.outcomes.info(),
         }
 
-    def _remote_true(self) -> NDArray[np.float64]:
+    def _remote_true(
+        self, position: NDArray[np.float64], velocity: NDArray[np.float64]
+    ) -> NDArray[np.float64]:
         """The true remote state (object position, and velocity if perceived); before the
-        object spawned, where it will appear, at rest."""
-        if self.events.spawned(self._t):
-            position, velocity = self.sim.object_position(), self.sim.object_velocity()
-        else:
-            position, velocity = self.events.start.copy(), np.zeros(3)
+        object spawned, where it will appear, at rest. A new array (``info`` keeps its own)."""
+        if not self.events.spawned(self._t):
+            position, velocity = self.events.start, np.zeros(3)
         if not self.config.perceive_velocity:
-            return position
+            return position.copy()
         return np.concatenate([position, velocity])
