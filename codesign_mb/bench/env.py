@@ -13,8 +13,10 @@ import platform
 import time
 from typing import Any
 
+import mujoco
 import numpy as np
 
+from codesign_mb.bench.physics import recording_controls, replay_physics
 from codesign_mb.control.scripted import ScriptedPickController
 from codesign_mb.plants.conveyor import ConveyorConfig, ConveyorPickPlace
 
@@ -22,56 +24,21 @@ __all__ = ["bench_env"]
 
 
 def _episode(
-    env: ConveyorPickPlace,
-    policy: ScriptedPickController,
-    episode_seed: int,
-    record: list[np.ndarray] | None,
+    env: ConveyorPickPlace, policy: ScriptedPickController, episode_seed: int
 ) -> tuple[float, float, int]:
-    """One scripted episode: the wall and CPU time inside ``env.step``, and its steps.
-
-    With ``record``, the Python inner loop runs (the same torques) and each substep's
-    ``ctrl`` is kept, for the bare-physics replay.
-    """
-    sim = env.sim
-    bare_step = sim._mj_step2  # the second half of each physics step, after the torques
-    if record is not None:
-        sim.compiled = False
-        ctrl = sim.data.ctrl
-
-        def recording_step() -> None:
-            record.append(ctrl.copy())
-            bare_step()
-
-        sim._mj_step2 = recording_step
-    try:
-        obs, _ = env.reset(seed=episode_seed)
-        policy.reset(seed=episode_seed)
-        elapsed, cpu, steps, done = 0.0, 0.0, 0, False
-        while not done:
-            action = policy.act(obs)
-            c0, t0 = time.thread_time(), time.perf_counter()
-            obs, _, terminated, truncated, _ = env.step(action)
-            elapsed += time.perf_counter() - t0
-            cpu += time.thread_time() - c0
-            steps += 1
-            done = terminated or truncated
-    finally:
-        sim._mj_step2, sim.compiled = bare_step, True
+    """One scripted episode: the wall and CPU time inside ``env.step``, and its steps."""
+    obs, _ = env.reset(seed=episode_seed)
+    policy.reset(seed=episode_seed)
+    elapsed, cpu, steps, done = 0.0, 0.0, 0, False
+    while not done:
+        action = policy.act(obs)
+        c0, t0 = time.thread_time(), time.perf_counter()
+        obs, _, terminated, truncated, _ = env.step(action)
+        elapsed += time.perf_counter() - t0
+        cpu += time.thread_time() - c0
+        steps += 1
+        done = terminated or truncated
     return elapsed, cpu, steps
-
-
-def _replay(env: ConveyorPickPlace, episode_seed: int, controls: np.ndarray) -> tuple[float, float]:
-    """Bare ``mj_step`` calls on the recorded ``ctrl`` of an episode: wall and CPU time."""
-    import mujoco
-
-    env.reset(seed=episode_seed)
-    m, d = env.sim.model, env.sim.data
-    ctrl = d.ctrl
-    c0, t0 = time.thread_time(), time.perf_counter()
-    for u in controls:
-        ctrl[:] = u
-        mujoco.mj_step(m, d)
-    return time.perf_counter() - t0, time.thread_time() - c0
 
 
 def _one_repeat(
@@ -81,16 +48,17 @@ def _one_repeat(
     recorded = []
     for s in seeds:
         controls: list[np.ndarray] = []
-        _episode(env, policy, s, controls)
+        with recording_controls(env, controls):
+            _episode(env, policy, s)
         recorded.append(np.array(controls))
     elapsed = cpu = 0.0
     steps = 0
     for s in seeds:
-        e_wall, e_cpu, e_steps = _episode(env, policy, s, None)
+        e_wall, e_cpu, e_steps = _episode(env, policy, s)
         elapsed, cpu, steps = elapsed + e_wall, cpu + e_cpu, steps + e_steps
     p_wall = p_cpu = 0.0
     for s, controls in zip(seeds, recorded, strict=True):
-        w, c = _replay(env, s, controls)
+        w, c = replay_physics(env, s, controls)
         p_wall, p_cpu = p_wall + w, p_cpu + c
     n_replayed = sum(len(c) for c in recorded) / env.config.n_substeps
     return steps / elapsed, steps / cpu, n_replayed / p_wall, n_replayed / p_cpu
@@ -110,8 +78,6 @@ def bench_env(*, repeats: int = 5, seed: int = 0, episodes: int = 1) -> dict[str
     share of a step spent in the physics, a machine-independent figure) and the load
     average.
     """
-    import mujoco
-
     if int(repeats) < 1:
         raise ValueError(f"repeats must be >= 1, got {repeats}")
     if int(episodes) < 1:

@@ -19,9 +19,11 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from typing import Any
 
+import mujoco
 import numpy as np
 
 from codesign_mb.adaptation.base import StaticQos
+from codesign_mb.bench.physics import recording_controls, replay_physics
 from codesign_mb.control.mpc import MpcController
 from codesign_mb.estimation.predictor import DelayCompensatingPredictor
 from codesign_mb.network.link import BernoulliLink
@@ -45,25 +47,17 @@ def _build(reliability: float, latency_steps: int) -> tuple[Any, Any, Any, Any]:
 @contextmanager
 def _recording(plant: Any, controls: list[np.ndarray], actions: list[np.ndarray]) -> Iterator[None]:
     """Run the Python inner loop; keep every substep's ``ctrl`` and every action of the plant."""
-    sim = plant.sim
-    bare_step = sim._mj_step2
-    ctrl = sim.data.ctrl
     plant_step = plant.step
-
-    def recording_step() -> None:
-        controls.append(ctrl.copy())
-        bare_step()
 
     def recording_plant_step(action: np.ndarray) -> Any:
         actions.append(np.array(action, dtype=float))
         return plant_step(action)
 
-    sim.compiled, sim._mj_step2 = False, recording_step
     plant.step = recording_plant_step
     try:
-        yield
+        with recording_controls(plant, controls):
+            yield
     finally:
-        sim._mj_step2, sim.compiled = bare_step, True
         del plant.step
 
 
@@ -134,9 +128,6 @@ def _repeat(
     Returns the steps, the loop's wall and CPU time, the bare physics' wall and CPU time
     and the bare env's wall time.
     """
-    import mujoco
-
-    m, d = plant.sim.model, plant.sim.data
     recorded, actions = [], []
     for s in seeds:
         controls: list[np.ndarray] = []
@@ -153,14 +144,8 @@ def _repeat(
         cpu += time.thread_time() - c0
     p_wall = p_cpu = e_wall = 0.0
     for s, controls_s in zip(seeds, recorded, strict=True):
-        plant.reset(seed=s)
-        ctrl = d.ctrl
-        c0, t0 = time.thread_time(), time.perf_counter()
-        for u in controls_s:
-            ctrl[:] = u
-            mujoco.mj_step(m, d)
-        p_wall += time.perf_counter() - t0
-        p_cpu += time.thread_time() - c0
+        w, c = replay_physics(plant, s, controls_s)
+        p_wall, p_cpu = p_wall + w, p_cpu + c
     for s, episode_actions in zip(seeds, actions, strict=True):
         plant.reset(seed=s)
         step = plant.step
@@ -196,8 +181,6 @@ def bench_loop(
     ``controller_act``, ``estimator_estimate``, ``wrapper_link``, ``record``, from a
     separate pass over the last repeat's episodes) and the load average.
     """
-    import mujoco
-
     if int(repeats) < 1:
         raise ValueError(f"repeats must be >= 1, got {repeats}")
     if int(episodes) < 1:
