@@ -37,15 +37,15 @@ CONFIGS = Path(__file__).resolve().parents[1] / "configs" / "scenarios"
 
 
 # ----------------------------------------------------------------------------- presets
-def test_paper_is_todays_default_and_the_default_scenario() -> None:
-    assert DEFAULT_SCENARIO == "paper"
+def test_realistic_is_the_default_and_paper_the_configs_defaults() -> None:
+    assert DEFAULT_SCENARIO == "realistic"
     assert scenario_config("paper") == ConveyorConfig()
     assert scenario_config("constant-0.2") == ConveyorConfig()
     assert scenario_config("constant-0.6") == ConveyorConfig(belt_speed_mps=0.6)
     assert scenario_config("variable") == ConveyorConfig(
         belt_speed_mps=0.6, belt_profile="variable"
     )
-    assert EvaluateConfig().env_config() == ConveyorConfig()
+    assert EvaluateConfig().env_config() == scenario_config("realistic")
 
 
 def test_realistic_expands_to_the_documented_fields() -> None:

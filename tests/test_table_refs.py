@@ -306,3 +306,19 @@ def test_report_keeps_reference_rows_off_the_pareto_front() -> None:
     # blind (less network) and oracle (more success) would dominate-or-tie as rows; as
     # references they are never on the front, and the one real row is.
     assert list(points["pareto"]) == [True, False, False]
+
+
+def test_checkpoints_trained_on_another_layout_are_named() -> None:
+    """The shipped learned rows read the paper's packet (with velocity): not realistic's."""
+    from codesign_mb.core.registry import PlantSpec
+    from codesign_mb.plants.scenarios import scenario_options
+    from codesign_mb.studies.table_cost import incompatible_checkpoints
+    from codesign_mb.studies.table_rows import model_based_rows, model_free_rows
+
+    learned = model_free_rows()[0]  # SAC + MLP, static QoS
+    realistic = PlantSpec("conveyor", scenario_options("realistic"))
+    assert incompatible_checkpoints(learned, PlantSpec("conveyor", {})) == []
+    assert incompatible_checkpoints(learned, PlantSpec("conveyor", {"belt_speed_mps": 0.6})) == []
+    named = incompatible_checkpoints(learned, realistic)
+    assert len(named) == 2 and "stage_a" in named[0] and "stage_d" in named[1]
+    assert all(incompatible_checkpoints(row, realistic) == [] for row in model_based_rows())

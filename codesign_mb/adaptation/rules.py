@@ -14,7 +14,11 @@ No learning. Both rules are :class:`~codesign_mb.network.qos.QosPolicy` objects:
     the object's position uncertainty ``sqrt(tr P_oo)``, predicted to the step the packet
     sent now is used at (``t + tau``) without that packet, exceeds ``threshold_m``; ``low``
     otherwise, and ``low`` once the object is lifted (the paper's learned policy likewise
-    drops to a fixed low value after the lift, ``fig_lat``).
+    drops to a fixed low value after the lift, ``fig_lat``). With ``innovation_gate`` it
+    also reads the data: a delivered packet the predictor did not expect (normalised
+    innovation squared above the chi-square quantile: a belt stop, a speed step, a slip, a
+    perception outlier) makes it ask ``high`` until a packet it expects arrives, so two
+    episodes with different belt events get different request timelines.
 
 :class:`PredictorReplica` is that replica (also what a learned QoS policy may be given, the
 ``predictor_std`` feature of :mod:`codesign_mb.adaptation.learned`).
@@ -32,6 +36,7 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.stats import chi2
 
 from codesign_mb.network.qos import QosRequest
 
@@ -103,12 +108,14 @@ class PredictorReplica:
         self.calls = 0
         self._start_z: float | None = None
         self.lifted = False
+        self.nis = math.nan
 
     def reset(self) -> None:
         """Start an episode (the predictor restarts from the next held state)."""
         self.calls = 0
         self._start_z = None
         self.lifted = False
+        self.nis = math.nan
 
     def observe(self, observation: NDArray[np.float64], age: int) -> None:
         """Take in ``(y_{t-1}, zeta_{t-1})``, what the robot held when packet ``t`` is sent."""
@@ -120,8 +127,12 @@ class PredictorReplica:
         wrapped = np.append(held, float(age))
         if calls == 1:
             self.predictor.reset(wrapped)
+            self.nis = math.nan
         else:
+            updates = self.predictor.updates
             self.predictor.estimate(wrapped, np.zeros(0))
+            if self.predictor.updates > updates:  # a new packet: how surprising it was
+                self.nis = self.predictor.last_nis
         if (  # the held state is a measurement (not the prior) of a lifted object
             self.lift_margin_m is not None
             and self._start_z is not None
@@ -160,6 +171,11 @@ class CovarianceTriggeredQos:
         Reliabilities requested (``high`` also before anything has arrived).
     latency_steps:
         ``tau`` requested with every packet (>= 1 on WiFi).
+    innovation_gate:
+        Probability of the chi-square quantile above which a delivered packet's normalised
+        innovation squared counts as a surprise (``None``: the covariance alone decides, the
+        fixed timetable of a linear filter). After a surprise the rule asks ``high`` until a
+        packet within the gate arrives.
 
     Examples
     --------
@@ -178,6 +194,7 @@ class CovarianceTriggeredQos:
         low: float = 0.2,
         high: float = 1.0,
         latency_steps: int = 1,
+        innovation_gate: float | None = None,
     ) -> None:
         QosRequest(low, latency_steps)
         QosRequest(high, latency_steps)
@@ -185,6 +202,14 @@ class CovarianceTriggeredQos:
             raise ValueError(f"latency_steps must be >= 1, got {latency_steps}")
         if not (math.isfinite(threshold_m) and threshold_m > 0):
             raise ValueError(f"threshold_m must be > 0, got {threshold_m!r}")
+        if innovation_gate is not None and not 0.0 < innovation_gate < 1.0:
+            raise ValueError(f"innovation_gate must be in (0, 1) or None, got {innovation_gate!r}")
+        self.innovation_gate = innovation_gate
+        self.nis_limit = (
+            math.inf
+            if innovation_gate is None
+            else float(chi2.ppf(innovation_gate, replica.predictor.measured_dims))
+        )
         self.low, self.high = float(low), float(high)
         self.latency_steps = int(latency_steps)
         self.threshold_m = float(threshold_m)
@@ -210,6 +235,8 @@ class CovarianceTriggeredQos:
             return QosRequest(self.high, self.latency_steps)
         if self.replica.lifted:
             return QosRequest(self.low, self.latency_steps)
+        if self.replica.nis > self.nis_limit:  # the last packet surprised the model
+            return QosRequest(self.high, self.latency_steps)
         # The packet sent now (step t) is used from t + tau on: the uncertainty then without it.
         std = self.position_std_ahead(1 + self.latency_steps)
         q = self.high if std > self.threshold_m else self.low

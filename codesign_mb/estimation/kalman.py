@@ -29,6 +29,7 @@ protocol, for a :class:`~codesign_mb.plants.linear.LinearPlantEnv` seen through 
 
 from __future__ import annotations
 
+import math
 from collections import deque
 from dataclasses import dataclass, field
 
@@ -200,6 +201,7 @@ class IntermittentKalmanFilter:
         self._P: FloatArray | None = None
         self._t = 0
         self._n_dropped = 0
+        self._innovation: tuple[FloatArray, FloatArray, FloatArray] | None = None
 
     @property
     def n_states(self) -> int:
@@ -245,6 +247,22 @@ class IntermittentKalmanFilter:
         """Measurements refused since :meth:`reset` because they were older than the window."""
         return self._n_dropped
 
+    @property
+    def last_nis(self) -> float:
+        """Normalised innovation squared of the last incorporated measurement (NaN before any).
+
+        ``nu' S^{-1} nu`` with ``nu = z - C x_s^-`` and ``S = C P_s^- C' + R``, against the prior
+        at the measurement's own step ``s`` (so a delayed packet is judged by what the filter
+        expected of that step). For a consistent filter it is chi-square with ``p`` degrees of
+        freedom. Computed on demand: the filter's hot path only keeps references.
+        """
+        if self._innovation is None:
+            return math.nan
+        z, x, P = self._innovation
+        nu = z - self.C @ x
+        S = self.C @ P @ self.C.T + self.R
+        return float(nu @ np.linalg.solve(S, nu))
+
     def reset(self, x0: ArrayLike, P0: ArrayLike) -> None:
         """Start at ``t = 0`` from the prior ``x_0 ~ N(x0, P0)``.
 
@@ -263,6 +281,7 @@ class IntermittentKalmanFilter:
         self._x, self._P = x, P
         self._t = 0
         self._n_dropped = 0
+        self._innovation = None
 
     def predict(
         self,
@@ -333,7 +352,9 @@ class IntermittentKalmanFilter:
             self._n_dropped += 1
             return False
         k = s - first
-        self._history[k].measurements.append(z_arr)
+        step = self._history[k]
+        self._innovation = (z_arr, step.x_prior, step.P_prior)
+        step.measurements.append(z_arr)
         if s == self._t:
             assert self._x is not None and self._P is not None
             self._x, self._P = self._measurement_update(self._x, self._P, z_arr)

@@ -269,6 +269,22 @@ class DelayCompensatingPredictor:
         return np.asarray(self._kf.P, dtype=float).copy()
 
     @property
+    def last_nis(self) -> float:
+        """Normalised innovation squared of the last packet filtered in (NaN before any).
+
+        Chi-square with as many degrees of freedom as measured entries when the model holds;
+        large when the object did what the constant-velocity model did not expect (the belt
+        stopped or changed speed, the object slipped) or the perception erred.
+        """
+        self._require()
+        return float(self._kf.last_nis)
+
+    @property
+    def measured_dims(self) -> int:
+        """Entries of one measurement: 3 (position) or 6 (position and velocity)."""
+        return int(self.C.shape[0])
+
+    @property
     def position_std(self) -> float:
         """``sqrt(trace P_oo)``: the predicted object position's RMS uncertainty in m."""
         return float(math.sqrt(max(np.trace(self.covariance[:3, :3]), 0.0)))

@@ -60,8 +60,8 @@ from codesign_mb.evaluation.evaluate import evaluate, summarize
 from codesign_mb.network.link import BernoulliLink, Reception
 from codesign_mb.network.qos import QosRequest
 from codesign_mb.plants.conveyor import ConveyorConfig
-from codesign_mb.plants.scenarios import DEFAULT_SCENARIO, scenario_options
 from codesign_mb.plants.scenarios import SCENARIOS as CONVEYOR_SCENARIOS
+from codesign_mb.plants.scenarios import scenario_options
 from codesign_mb.studies.fig_wifi import CHANNEL_PRESETS, CapacityConfig, PipelineConfig, run_point
 from codesign_mb.studies.table_rows import all_rows, model_based_rows, model_free_rows
 from codesign_mb.wifi.config import SCHEDULERS
@@ -220,7 +220,7 @@ def plant_options(scenario: str, params: Params, belt_speed_mps: float) -> dict[
     a belt speed range (``realistic``) the grid's belt speed is the nominal one, what the robot
     assumes; the episode's speed is drawn from the range.
     """
-    preset = scenario if scenario in CONVEYOR_SCENARIOS else DEFAULT_SCENARIO
+    preset = scenario if scenario in CONVEYOR_SCENARIOS else "paper"
     return {**scenario_options(preset), **params.plant_options_at(belt_speed_mps)}
 
 

@@ -83,6 +83,7 @@ from codesign_mb.plants.scenarios import SCENARIOS, get_scenario, scenario_optio
 from codesign_mb.rollout import rollout
 from codesign_mb.studies.table_cost import (
     TrainingCost,
+    incompatible_checkpoints,
     missing_checkpoints,
     timed_factory,
     training_cost,
@@ -336,7 +337,8 @@ def run_table(
         for p in plants
         for name, paths in missing.items()
     }
-    cells = [(p, r.row) for p in plants for r in listed if r.row.name not in missing]
+    why.update(_incompatible_cells(listed, plants, missing))
+    cells = [(p, r.row) for p in plants for r in listed if (p.label, r.row.name) not in why]
     tables = _run_cells(cells, config, progress, "table episodes")
     per_plant = {p.label: list(listed) for p in plants}
     if config.with_references():
@@ -413,6 +415,32 @@ def _missing_rows(rows: tuple[TableRow, ...], on_missing: str) -> dict[str, list
             stacklevel=3,
         )
     return missing
+
+
+def _incompatible_cells(
+    listed: list[Reference], plants: tuple[TablePlant, ...], missing: Mapping[str, Any]
+) -> dict[tuple[str, str], str]:
+    """(plant, row) -> why, for rows whose checkpoints cannot read the plant's observation.
+
+    Skipped with a ``RuntimeWarning`` and a status, like a missing checkpoint: the shipped
+    learned checkpoints were trained on the ``paper`` scenario, whose packet carries the
+    object's velocity; ``codesign train --scenario NAME`` trains them for another.
+    """
+    why = {}
+    for plant in plants:
+        for ref in listed:
+            if ref.row.name in missing:
+                continue
+            found = incompatible_checkpoints(ref.row, plant.spec)
+            if found:
+                why[(plant.label, ref.row.name)] = f"incompatible checkpoint: {', '.join(found)}"
+                warnings.warn(
+                    f"row {ref.row.name!r} skipped on {plant.label}: {', '.join(found)}; "
+                    "train for this plant with `codesign train --scenario NAME`",
+                    RuntimeWarning,
+                    stacklevel=3,
+                )
+    return why
 
 
 def _run_cells(

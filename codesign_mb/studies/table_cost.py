@@ -14,6 +14,7 @@ A *row* here is anything with ``controller``, ``estimator`` and ``qos``
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 import time
@@ -25,7 +26,9 @@ from typing import Any, Protocol
 from codesign_mb.core.registry import (
     ComponentSpec,
     Factory,
+    PlantSpec,
     factory,
+    make_plant,
     models_dir,
     resolve_checkpoint,
 )
@@ -34,6 +37,7 @@ __all__ = [
     "CPU_COLUMNS",
     "RowLike",
     "TrainingCost",
+    "incompatible_checkpoints",
     "missing_checkpoints",
     "timed_component",
     "timed_factory",
@@ -77,6 +81,62 @@ def missing_checkpoints(row: RowLike) -> list[str]:
         ):
             missing.append(f"{spec.checkpoint} (no model.zip + qos_policy.json)")
     return missing
+
+
+def incompatible_checkpoints(row: RowLike, plant: PlantSpec) -> list[str]:
+    """The checkpoints of ``row`` trained on a plant whose observation differs from ``plant``'s.
+
+    A learned component reads the observation layout it was trained on (the plant in its
+    folder's ``training.json``): another belt speed is a fair test of generalisation, another
+    layout (e.g. the ``realistic`` scenario's packet without the object's velocity) cannot
+    be fed to it at all. Checkpoints without a recorded plant are not judged here.
+    """
+    wanted = _observation_signature(plant.name, _options_key(plant.options))
+    found = []
+    for _, spec in _specs(row):
+        trained = _trained_plant(spec)
+        if trained is None:
+            continue
+        signature = _observation_signature(trained.name, _options_key(trained.options))
+        if signature != wanted:
+            found.append(f"{spec.checkpoint} (trained on another observation layout)")
+    return found
+
+
+def _trained_plant(spec: ComponentSpec) -> PlantSpec | None:
+    """The plant in the ``training.json`` beside ``spec``'s checkpoint, if it records one."""
+    if not spec.checkpoint:
+        return None
+    try:
+        path = resolve_checkpoint(spec.checkpoint)
+    except ValueError:
+        return None
+    meta_path = path / "training.json" if path.is_dir() else path.parent / "training.json"
+    if not meta_path.is_file():
+        return None
+    config = json.loads(meta_path.read_text()).get("config")
+    plant = config.get("plant") if isinstance(config, Mapping) else None
+    if not isinstance(plant, Mapping) or not isinstance(plant.get("name"), str):
+        return None
+    return PlantSpec(plant["name"], dict(plant.get("options") or {}))
+
+
+def _options_key(options: Mapping[str, Any]) -> str:
+    return json.dumps(dict(options), sort_keys=True, default=str)
+
+
+@functools.lru_cache(maxsize=32)
+def _observation_signature(name: str, options_key: str) -> tuple[Any, ...]:
+    """What a learned component's input depends on: the layout's names and sizes."""
+    env = make_plant(PlantSpec(name, json.loads(options_key)))
+    try:
+        plant = env.unwrapped
+        layout = getattr(plant, "observation_layout", None)
+        if layout is None:
+            return ("shape", tuple(env.observation_space.shape))
+        return tuple((key, s.start, s.stop) for key, s in layout.items())
+    finally:
+        env.close()
 
 
 @dataclass(frozen=True)

@@ -113,8 +113,13 @@ MPC_RULE_THRESHOLD_M = 0.08
 0.2 m/s (`tune_threshold`; see the note in README.md)."""
 
 
+RULE_INNOVATION_GATE = 0.99
+"""Chi-square probability above which a packet surprises the co-design rule (asks again)."""
+
+
 def _rule() -> ComponentSpec:
-    return ComponentSpec("rule", options={"threshold_m": MPC_RULE_THRESHOLD_M, "low": 0.0})
+    options = {"threshold_m": MPC_RULE_THRESHOLD_M, "low": 0.0}
+    return ComponentSpec("rule", options={**options, "innovation_gate": RULE_INNOVATION_GATE})
 
 
 def model_free_rows() -> tuple[TableRow, ...]:
