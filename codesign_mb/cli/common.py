@@ -115,7 +115,7 @@ ScenarioOption = Annotated[
     str | None,
     typer.Option(
         "--scenario",
-        help=f"{SCENARIO_HELP} \\[default: paper, on which README's numbers were measured]",
+        help=f"{SCENARIO_HELP} \\[default: realistic]",
         show_default=False,
     ),
 ]

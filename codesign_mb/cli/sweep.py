@@ -68,8 +68,7 @@ def sweep_command(
             help="Scenario: 'linear' (LQG over a lossy link, fast), 'conveyor' (MuJoCo "
             "pick-and-place on its paper scenario), a conveyor scenario preset ("
             + ", ".join(SCENARIO_NAMES)
-            + "; configs/scenarios/), or an importable module path. The conveyor's default "
-            "is paper, on which README's numbers were measured."
+            + "; configs/scenarios/), or an importable module path."
         ),
     ] = _DEFAULTS["scenario"],
     pipelines: Annotated[
