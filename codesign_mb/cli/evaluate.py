@@ -71,7 +71,9 @@ def evaluate_command(
     """Run seeded episodes in parallel; write OUT/NAME.parquet/.csv/.json and a summary.
 
     The summary (success rate with its 95% Wilson interval, mean requested reliability,
-    delivered fraction, mean age, MPC solve times) is printed and written to
+    delivered fraction, mean age, failure reasons, MPC solve times, the object's estimation
+    error per phase est_error_mm_<belt|grasp|carried> and, for the predictor, its NEES per
+    phase with the 95% band of a consistent filter) is printed and written to
     OUT/NAME_summary.json. A config file may hold the options at top level or under
     [evaluate], with the tables [evaluate.env] (ConveyorConfig fields on top of the
     --scenario preset), [evaluate.mpc] (MpcConfig) and [evaluate.predictor].

@@ -41,6 +41,7 @@ from codesign_mb.core.registry import ComponentSpec, Factory
 from codesign_mb.core.seeds import episode_seeds
 from codesign_mb.core.stats import wilson_interval
 from codesign_mb.evaluation import pool
+from codesign_mb.evaluation.phase_metrics import episode_phase_metrics, summarize_phases
 from codesign_mb.network.link import BernoulliLink
 from codesign_mb.network.qos import QosRequest
 from codesign_mb.network.wrapper import LinkObservationWrapper
@@ -119,7 +120,10 @@ def summarize(table: pd.DataFrame, confidence: float = 0.95) -> dict[str, Any]:
     their 99th percentiles and the overall maximum. With the conveyor's outcome columns:
     ``mean_time_to_grasp_s`` (over the episodes that grasped) and ``failures_<reason>``, the
     number of failed episodes per reason of
-    :data:`~codesign_mb.plants.outcomes.FAILURE_REASONS`.
+    :data:`~codesign_mb.plants.outcomes.FAILURE_REASONS`. With the per-phase columns, the
+    estimation error per phase and the NEES with its band under a consistent filter
+    (``est_error_mm_<phase>``, ``nees_<phase>``, ...: pooled over the steps,
+    :func:`~codesign_mb.evaluation.phase_metrics.summarize_phases`).
     """
     if len(table) == 0:
         raise ValueError("cannot summarise an empty table")
@@ -159,6 +163,7 @@ def summarize(table: pd.DataFrame, confidence: float = 0.95) -> dict[str, Any]:
             out["mpc_solve_cpu_ms_median"] = float(table["mpc_solve_cpu_ms_median"].median())
             out["mpc_solve_cpu_ms_p99"] = float(table["mpc_solve_cpu_ms_p99"].median())
         out["mpc_failures"] = int(table["mpc_failures"].sum())
+    out.update(summarize_phases(table, confidence))
     return out
 
 
@@ -237,6 +242,7 @@ def episode_row(steps: pd.DataFrame) -> dict[str, Any]:
         )
         grasp_s = float(last["time_to_grasp_s"])
         row["time_to_grasp_s"] = grasp_s if grasp_s >= 0 else math.nan  # -1: never grasped
+    row.update(episode_phase_metrics(steps))
     return row
 
 
@@ -371,7 +377,10 @@ def evaluate(
         conveyor's ``perceived_fraction`` (steps with a fresh detection at the edge),
         ``failure_reason`` (``None`` for a success, else one of
         :data:`~codesign_mb.plants.outcomes.FAILURE_REASONS`) and ``time_to_grasp_s``, the
-        ``episode_metrics()`` of the controller, estimator and QoS policy (for the MPC:
+        estimation error and NEES per phase of the object (``phase_steps_<phase>``,
+        ``est_error_mm_<phase>``, ``nees_<phase>``, ``nees_state_<phase>``:
+        :mod:`~codesign_mb.evaluation.phase_metrics`), the ``episode_metrics()`` of the
+        controller, estimator and QoS policy (for the MPC:
         ``mpc_solves``, ``mpc_failures``, ``mpc_solve_ms_median``, ``mpc_solve_ms_p99``,
         ``mpc_solve_ms_max`` (wall clock), ``mpc_solve_cpu_ms_median``,
         ``mpc_solve_cpu_ms_p99`` (CPU)), ``wall_time_s``.

@@ -3,7 +3,8 @@ and the belt-tracking double integrator of the linear sweep scenario.
 
 The conveyor's named scenarios (``paper``, ``realistic``, ``variable``, ``constant-*``) are in
 :mod:`codesign_mb.plants.scenarios`, its edge perception error models in
-:mod:`codesign_mb.plants.perception`, why an episode failed in :mod:`codesign_mb.plants.outcomes`.
+:mod:`codesign_mb.plants.perception`, why an episode failed in :mod:`codesign_mb.plants.outcomes`,
+the phases of an episode (belt, grasp, carried) in :mod:`codesign_mb.plants.phases`.
 
 Each is registered with Gymnasium, so ``gymnasium.make("codesign_mb/ConveyorPickPlace-v0")``
 (or ``ToyConveyor-v0``, ``LinearPlant-v0`` with ``plant="pendulum"`` ...) gives it with its

@@ -26,7 +26,8 @@ speed range, random start and spawn time, disturbances) are in
 :mod:`codesign_mb.plants.conveyor_config`; the named presets in
 :mod:`codesign_mb.plants.scenarios`; why a failed episode failed in
 :mod:`codesign_mb.plants.outcomes` (``info``: ``missed_grasp``, ``dropped``, ``off_belt``,
-``time_to_grasp_s``).
+``time_to_grasp_s``); the phase of the episode (belt, grasp, carried: where an estimation
+error matters) in :mod:`codesign_mb.plants.phases` (``info["phase"]``).
 
 Action (``Box(4)`` in [-1, 1], float32): the TCP velocity command divided by
 ``max_gripper_speed_mps`` (3), and the grip (> 0 close, <= 0 open). Out-of-range actions are
@@ -80,6 +81,7 @@ from codesign_mb.plants.perception import (
     make_perception,
     reset_perception,
 )
+from codesign_mb.plants.phases import episode_phase
 from codesign_mb.robot.render import OffscreenRenderer
 from codesign_mb.robot.scene import BELT_SURFACE_Z, BELT_X, OBJECTS
 from codesign_mb.robot.simulator import ConveyorSimulator
@@ -376,6 +378,9 @@ class ConveyorPickPlace(gym.Env):
             "belt_speed": self.sim.belt_speed,
             "perceived": self._perceived,
             "remote_true": self._remote_true(obj, velocity),
+            "phase": episode_phase(
+                obj, gripper, grasped=grasped, lifted=lifted, spawned=self.events.spawned(self._t)
+            ),
             **self.outcomes.info(),
         }
 

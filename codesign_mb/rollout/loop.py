@@ -22,6 +22,7 @@ from numpy.typing import NDArray
 from codesign_mb.control.base import Controller
 from codesign_mb.estimation.base import Estimator
 from codesign_mb.network.wrapper import LinkObservationWrapper
+from codesign_mb.rollout.object_errors import ObjectErrors
 
 __all__ = ["ClosedLoop", "SharedChannelLike", "Transition", "rollout", "rollout_shared"]
 
@@ -90,6 +91,8 @@ class ClosedLoop:
         self.info: dict[str, Any] = {}
         self._state: NDArray[np.float64] | None = None
         self._record: _Record | None = None
+        self._object_errors = ObjectErrors.of(env, estimator) if record else None
+        self._errors: ObjectErrors | None = None  # this episode's (the plant reports a phase)
 
     def reset(self, *, seed: int) -> dict[str, Any]:
         """Start an episode: plant, link, QoS policy, controller and estimator from ``seed``."""
@@ -98,7 +101,12 @@ class ClosedLoop:
         self.observation, self.info = obs, info
         self._state = self._estimate(obs, info, None)
         self.t, self.done = 0, False
-        self._record = _Record() if self.recording else None
+        self._errors = self._object_errors if "phase" in info else None
+        names = _HEAD
+        if self._errors is not None:
+            self._errors.reset()
+            names = (*_HEAD[:-1], *self._errors.names, _HEAD[-1])
+        self._record = _Record(names) if self.recording else None
         return info
 
     def _estimate(
@@ -124,6 +132,8 @@ class ClosedLoop:
             head = [*_recorded(info)]
             error = state[self._remote] - info["remote_true"]
             head.append(math.sqrt(error.dot(error)))  # the norm of the estimation error
+            if self._errors is not None:  # the object's phase; its errors kept for table()
+                head.extend(self._errors.step(info, error))
         obs, reward, terminated, truncated, next_info = self.env.step(action)
         if self._record is not None and head is not None:
             self._record.append(self.t, head, float(reward), next_info)
@@ -155,7 +165,14 @@ class ClosedLoop:
 
     def table(self) -> pd.DataFrame:
         """The per-step record: one row per control step (see :func:`rollout`)."""
-        return self._record.frame() if self._record is not None else pd.DataFrame([])
+        if self._record is None:
+            return pd.DataFrame([])
+        frame = self._record.frame()
+        if self._errors is not None and len(frame):  # after the phase, in its order
+            at = frame.columns.get_loc("phase") + 1
+            for i, (name, column) in enumerate(self._errors.columns().items()):
+                frame.insert(at + i, name, column)
+        return frame
 
 
 _HEAD = ("t", *_RECORDED, "estimation_error", "reward")
@@ -163,26 +180,28 @@ _SCALARS = (bool, int, float, np.bool_, np.float64, np.int64)
 """Types whose values are recorded without asking ``np.ndim`` (0-d by construction)."""
 
 
-def _scalar_keys(info: dict[str, Any]) -> list[str]:
-    """The ``info`` keys a row records: scalar, non-string values not among :data:`_HEAD`."""
+def _scalar_keys(info: dict[str, Any], head: tuple[str, ...] = _HEAD) -> list[str]:
+    """The ``info`` keys a row records: scalar, non-string values not among ``head``."""
     return [
         k
         for k, v in info.items()
-        if k not in _HEAD and (type(v) in _SCALARS or (np.ndim(v) == 0 and not isinstance(v, str)))
+        if k not in head and (type(v) in _SCALARS or (np.ndim(v) == 0 and not isinstance(v, str)))
     ]
 
 
 class _Record:
     """The per-step rows of one episode, as tuples (one DataFrame at the end).
 
-    A row is ``t``, the QoS columns, ``estimation_error``, ``reward`` and every scalar,
-    non-string ``info`` entry not among them. Which entries those are is found on the first
-    step and again whenever ``info``'s keys or value types differ from that step's; while the
-    recorded keys stay those of the first step, rows are tuples in one column order,
-    otherwise they fall back to dicts, which pandas aligns (a missing entry is NaN).
+    A row is the ``names`` (by default :data:`_HEAD`: ``t``, the QoS columns,
+    ``estimation_error``, ``reward``) and every scalar, non-string ``info`` entry not among
+    them. Which entries those are is found on the first step and again whenever ``info``'s
+    keys or value types differ from that step's; while the recorded keys stay those of the
+    first step, rows are tuples in one column order, otherwise they fall back to dicts, which
+    pandas aligns (a missing entry is NaN).
     """
 
-    def __init__(self) -> None:
+    def __init__(self, names: tuple[str, ...] = _HEAD) -> None:
+        self.names = names
         self.keys: tuple[str, ...] | None = None
         self.tuples: list[tuple[Any, ...]] = []
         self.rows: list[dict[str, Any]] | None = None
@@ -193,19 +212,19 @@ class _Record:
         if signature == self._signature and self.keys is not None:  # the usual step
             self.tuples.append((t, *head, reward, *map(info.__getitem__, self.keys)))
             return
-        keys = tuple(_scalar_keys(info))
+        keys = tuple(_scalar_keys(info, self.names))
         values = (t, *head, reward, *map(info.__getitem__, keys))
         if self.keys is None and self.rows is None:
             self.keys, self._signature = keys, signature
         if self.rows is None and keys != self.keys:
             self.rows = self._as_rows()
         if self.rows is not None:
-            self.rows.append(dict(zip((*_HEAD, *keys), values, strict=True)))
+            self.rows.append(dict(zip((*self.names, *keys), values, strict=True)))
             return
         self.tuples.append(values)
 
     def _as_rows(self) -> list[dict[str, Any]]:
-        names = (*_HEAD, *(self.keys or ()))
+        names = (*self.names, *(self.keys or ()))
         self._signature = None
         return [dict(zip(names, row, strict=True)) for row in self.tuples]
 
@@ -214,7 +233,7 @@ class _Record:
             return pd.DataFrame(self.rows)
         if self.keys is None:
             return pd.DataFrame([])
-        names = (*_HEAD, *self.keys)
+        names = (*self.names, *self.keys)
         columns = map(_column, zip(*self.tuples, strict=True))
         return pd.DataFrame(dict(zip(names, columns, strict=True)))
 
@@ -244,10 +263,14 @@ def rollout(
     """Run one seeded episode and return its per-step record (one row per control step).
 
     Columns: ``t``, ``reward``, the QoS request and its cost, ``delivered``, ``age``,
-    ``estimation_error`` (norm of the remote estimate minus the truth), and every scalar
-    entry of the plant's ``info`` (e.g. ``success``). Row ``t`` holds the action taken at
-    ``t`` and what followed it; the QoS columns describe the packet that produced the
-    observation acted on. ``estimator=None`` runs ideal control (see :class:`ClosedLoop`).
+    ``estimation_error`` (norm of the remote estimate minus the truth), for a plant that
+    reports the object's phase (the conveyor) ``phase``, ``position_error_m`` and, with an
+    estimator exposing its covariance, ``nees_position`` and ``nees_state``
+    (:mod:`codesign_mb.rollout.object_errors`), and every scalar entry of the plant's
+    ``info`` (e.g. ``success``). Row ``t`` holds the action taken at ``t`` and what followed
+    it; the QoS columns (and the object's phase and errors) describe the packet that produced
+    the observation acted on (the state it was estimated at). ``estimator=None`` runs ideal
+    control (see :class:`ClosedLoop`).
     """
     loop = ClosedLoop(env, estimator, controller, observer=observer)
     loop.reset(seed=seed)

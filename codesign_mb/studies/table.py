@@ -40,6 +40,11 @@ Columns of the summary (one row per table row and plant):
     ``request`` (the QoS policy runs at the edge), and their sum.
 ``mpc_failures``
     Failed MPC solves, summed over the episodes (NaN for a row without an MPC).
+``est_error_mm_<phase>``, ``nees_<phase>`` (with ``_low``, ``_high``), ``nees_state_<phase>``, ...
+    The object's estimation error per phase of the episode and the estimator's NEES with its
+    band under a consistent filter, pooled over the steps
+    (:mod:`codesign_mb.evaluation.phase_metrics`; NEES NaN without a covariance); in the JSON
+    and the summary table, not in the Markdown.
 ``status``
     ``"ok"``, or why the row was not evaluated (``"missing checkpoint: ..."``): a row whose
     checkpoint is absent is kept in the table with no figures (``on_missing="skip"``, the

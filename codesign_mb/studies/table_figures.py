@@ -20,6 +20,7 @@ import numpy as np
 import pandas as pd
 
 from codesign_mb.core.results import atomic_write, write_results
+from codesign_mb.evaluation.phase_metrics import SUMMARY_COLUMNS as PHASE_COLUMNS
 from codesign_mb.studies.figures import new_figure, save_png
 from codesign_mb.studies.table import TableConfig, qos_timeline, run_table, timeline_row_name
 from codesign_mb.studies.table_refs import ROW_KIND, draw_references, reference_legend
@@ -54,8 +55,10 @@ SUMMARY_COLUMNS: tuple[str, ...] = (
     "paper_success_rate",
     "paper_mean_reliability",
     "mpc_failures",
+    *PHASE_COLUMNS,
 )
-"""The summary columns ``codesign table --json`` prints."""
+"""The summary columns ``codesign table --json`` prints (with the estimation error and NEES per
+phase, :mod:`codesign_mb.evaluation.phase_metrics`; NaN where an estimator has no covariance)."""
 
 
 # -- Fig. 5 --------------------------------------------------------------------------------------

@@ -15,6 +15,7 @@ from typing import Any
 import pandas as pd
 
 from codesign_mb.evaluation.evaluate import summarize
+from codesign_mb.evaluation.phase_metrics import SUMMARY_COLUMNS as PHASE_COLUMNS
 from codesign_mb.studies.table_cost import CPU_COLUMNS, TrainingCost
 from codesign_mb.studies.table_refs import ROW_KIND, Reference
 from codesign_mb.studies.table_rows import TablePlant, TableRow, stack_of
@@ -95,5 +96,6 @@ _SUMMARY = (
     "delivered_fraction",
     "mean_age",
     "mean_estimation_error",
+    *PHASE_COLUMNS,
 )
 _NUMBERS = (*_SUMMARY, *CPU_COLUMNS, "cpu_ms_per_step", "mpc_failures", "eval_wall_time_s")
