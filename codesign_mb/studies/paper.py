@@ -38,6 +38,7 @@ README's results section is rendered from this folder by :mod:`codesign_mb.studi
 from __future__ import annotations
 
 import json
+import resource
 import shutil
 import time
 from collections.abc import Callable, Iterable, Mapping
@@ -373,7 +374,7 @@ def _run_study(
     shutil.rmtree(partial, ignore_errors=True)
     partial.mkdir(parents=True)
     started_at = datetime.now(UTC).isoformat(timespec="seconds")
-    started = time.perf_counter()
+    started, cpu = time.perf_counter(), _cpu_seconds()
     checkpoints: Mapping[str, Path] = {}
     if name == "lqg":
         _run_lqg(settings, partial)
@@ -392,6 +393,7 @@ def _run_study(
         "settings": settings,
         "workers": workers,
         "wall_time_s": round(seconds, 1),
+        "cpu_time_s": round(_cpu_seconds() - cpu, 1),
         "started": started_at,
         "finished": datetime.now(UTC).isoformat(timespec="seconds"),
         "provenance": provenance(checkpoints),
@@ -407,6 +409,16 @@ def _run_study(
     return seconds
 
 
+def _cpu_seconds() -> float:
+    """CPU seconds (user + system) of this process and of its finished children (the pool
+    workers): on a shared machine, what a study costs regardless of who else runs."""
+    own, children = (
+        resource.getrusage(resource.RUSAGE_SELF),
+        resource.getrusage(resource.RUSAGE_CHILDREN),
+    )
+    return own.ru_utime + own.ru_stime + children.ru_utime + children.ru_stime
+
+
 def _manifest(
     config: PaperConfig, out: Path, status: dict[str, str], seconds: float, command: str
 ) -> dict[str, Any]:
@@ -420,11 +432,15 @@ def _manifest(
             continue
         studies[name] = {
             "status": status.get(name, "kept"),
-            **{k: done.get(k) for k in ("command", "settings", "wall_time_s", "finished")},
+            **{
+                k: done.get(k)
+                for k in ("command", "settings", "wall_time_s", "cpu_time_s", "finished")
+            },
             "commit": done.get("provenance", {}).get("commit"),
         }
         checkpoints.update(done.get("provenance", {}).get("checkpoints", {}))
     recorded = [s["wall_time_s"] for s in studies.values() if s.get("wall_time_s") is not None]
+    cpu = [s["cpu_time_s"] for s in studies.values() if s.get("cpu_time_s") is not None]
     record = provenance()
     record["checkpoints"] = dict(sorted(checkpoints.items()))
     return dict(
@@ -437,6 +453,7 @@ def _manifest(
                 "created": datetime.now(UTC).isoformat(timespec="seconds"),
                 "wall_time_s": round(seconds, 1),
                 "studies_wall_time_s": round(sum(recorded), 1),
+                "studies_cpu_time_s": round(sum(cpu), 1),
                 "studies": studies,
                 "provenance": record,
             }

@@ -181,7 +181,10 @@ def export_results(results_dir: str | Path, docs_dir: str | Path = "docs") -> li
                 shown.append(shown_as)
         record = {
             "study": name,
-            **{k: done.get(k) for k in ("command", "settings", "wall_time_s", "finished")},
+            **{
+                k: done.get(k)
+                for k in ("command", "settings", "wall_time_s", "cpu_time_s", "finished")
+            },
             "commit": done.get("provenance", {}).get("commit"),
             "figures": shown,
             **_summary(name, src / name),
@@ -195,8 +198,12 @@ def export_results(results_dir: str | Path, docs_dir: str | Path = "docs") -> li
         "workers": manifest.get("config", {}).get("workers"),
         "created": manifest.get("created"),
         "studies_wall_time_s": manifest.get("studies_wall_time_s"),
+        "studies_cpu_time_s": manifest.get("studies_cpu_time_s"),
         "studies": {
-            name: {k: study.get(k) for k in ("command", "wall_time_s", "finished", "commit")}
+            name: {
+                k: study.get(k)
+                for k in ("command", "wall_time_s", "cpu_time_s", "finished", "commit")
+            }
             for name, study in manifest.get("studies", {}).items()
             if study.get("wall_time_s") is not None
         },

@@ -93,19 +93,32 @@ def header(run: Mapping[str, Any]) -> str:
 
 
 def wall_times(run: Mapping[str, Any]) -> str:
-    """The wall time of every study and of the whole run."""
+    """The wall and CPU time of every study and of the whole run."""
     rows = [
-        [f"`{name}`", f"`{study.get('command', '')}`", _duration(study.get("wall_time_s"))]
+        [
+            f"`{name}`",
+            f"`{study.get('command', '')}`",
+            _duration(study.get("wall_time_s")),
+            _duration(study.get("cpu_time_s")),
+        ]
         for name, study in run.get("studies", {}).items()
         if study.get("wall_time_s") is not None
     ]
-    rows.append(["all", "", _duration(run.get("studies_wall_time_s"))])
+    rows.append(
+        [
+            "all",
+            "",
+            _duration(run.get("studies_wall_time_s")),
+            _duration(run.get("studies_cpu_time_s")),
+        ]
+    )
     workers = run.get("workers")
     return _paragraphs(
-        "**Wall time of the run** (the 2-core machine"
-        + (f", {_count(workers, 'worker process', 'es')}" if workers else "")
-        + "; other jobs may have shared it):",
-        markdown_table(["study", "equivalent command", "wall time"], rows),
+        "**Time of the run** on the 2-core machine"
+        + (f" with {_count(workers, 'worker process', 'es')}" if workers else "")
+        + " (CPU: user + system time of the process and its workers, which does not grow "
+        "when other jobs share the machine; wall time does):",
+        markdown_table(["study", "equivalent command", "wall time", "CPU time"], rows),
     )
 
 
