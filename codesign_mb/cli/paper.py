@@ -64,7 +64,9 @@ def paper_command(
     lqg_episodes: Annotated[
         int, typer.Option("--lqg-episodes", help="Episodes per reliability of the LQG baseline.")
     ] = 8,
-    workers: Annotated[int, typer.Option("--workers", "-j", help="Worker processes.")] = 2,
+    workers: Annotated[
+        int, typer.Option("--workers", "-j", help="Worker processes. (--smoke: 1 unless given)")
+    ] = 2,
     only: Annotated[
         list[str] | None,
         typer.Option("--only", help=f"Run only this study (repeatable): {_STUDY_NAMES}."),

@@ -126,7 +126,8 @@ class PaperConfig:
     lqg_episodes:
         Episodes per reliability of the linear baseline.
     workers:
-        Worker processes of every study (results do not depend on it).
+        Worker processes of every study (results do not depend on it); ``None``: 2, or 1
+        with ``smoke`` (starting a pool costs more than a few episodes).
     seeds:
         The named seed set every study runs on (``test``: reported numbers).
     only, skip:
@@ -141,7 +142,7 @@ class PaperConfig:
     fig_cn_trials: int = 100
     wifi_trials: int = 5
     lqg_episodes: int = 8
-    workers: int = 2
+    workers: int | None = None
     seeds: str = "test"
     only: tuple[str, ...] = ()
     skip: tuple[str, ...] = ()
@@ -151,6 +152,8 @@ class PaperConfig:
     def __post_init__(self) -> None:
         for name in ("trials", "fig_cn_trials", "wifi_trials", "lqg_episodes", "workers"):
             value = getattr(self, name)
+            if name == "workers" and value is None:
+                continue
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
         seed_set(self.seeds)  # an unknown name names the sets
@@ -162,6 +165,10 @@ class PaperConfig:
                 raise ValueError(
                     f"{name} must name studies among {', '.join(STUDIES)}, got {unknown!r}"
                 )
+
+    def worker_count(self) -> int:
+        """``workers``, or its default: 2, or 1 with ``smoke``."""
+        return self.workers if self.workers is not None else 1 if self.smoke else 2
 
     def selected(self) -> tuple[str, ...]:
         """The studies to run, in run order."""
@@ -347,7 +354,7 @@ def run_paper(
             status[name] = "reused"
             say(f"{name}: complete, reused ({done.get('wall_time_s', 0):.0f} s when run)")
             continue
-        seconds = _run_study(name, settings, out, config.workers, wrap)
+        seconds = _run_study(name, settings, out, config.worker_count(), wrap)
         status[name] = "ran"
         say(f"{name}: {seconds:.0f} s -> {out / name}")
     manifest = _manifest(config, out, status, time.perf_counter() - started, command)
@@ -448,6 +455,7 @@ def _manifest(
             {
                 "command": command,
                 "config": asdict(config),
+                "workers": config.worker_count(),
                 "seeds": config.seeds,
                 "seed": seed_set(config.seeds),
                 "created": datetime.now(UTC).isoformat(timespec="seconds"),

@@ -109,7 +109,10 @@ def _summary(name: str, folder: Path) -> dict[str, Any]:
         config = results.config("fig_wifi")
         target = float(config.get("success_target", 0.95))
         curves = capacity_table(results.table("fig_wifi"), success_target=target)
-        channels = {str(c): describe_channel(str(c)) for c in curves["channel"].unique()}
+        present = set(curves["channel"].astype(str))
+        order = [str(c) for c in config.get("channels", [])]  # as configured, then the rest
+        order += sorted(present - set(order))
+        channels = {c: describe_channel(c) for c in order if c in present}
         return {
             "success_target": target,
             "channels": channels,
@@ -195,7 +198,7 @@ def export_results(results_dir: str | Path, docs_dir: str | Path = "docs") -> li
         "command": manifest.get("command", ""),
         "seeds": manifest.get("seeds"),
         "seed": manifest.get("seed"),
-        "workers": manifest.get("config", {}).get("workers"),
+        "workers": manifest.get("workers", manifest.get("config", {}).get("workers")),
         "created": manifest.get("created"),
         "studies_wall_time_s": manifest.get("studies_wall_time_s"),
         "studies_cpu_time_s": manifest.get("studies_cpu_time_s"),

@@ -4,7 +4,7 @@ Each function takes a study's ``docs/results/<study>.json`` (written by
 :func:`codesign_mb.studies.readme.export_results`) and returns its paragraph: a title with
 the command that produced the numbers and the seed set, then the table(s) and figure(s).
 Percentages are whole (``63 %``; below 1 %, one decimal); a 95 % Wilson interval is printed
-in percent with one decimal, a trailing ``.0`` dropped (``[96.3, 100]``).
+in percent with one decimal, none at 0 and 100 (``[96.3, 100]``, ``[61.5, 79.0]``).
 """
 
 from __future__ import annotations
@@ -30,11 +30,11 @@ def pct(value: float | None) -> str:
 
 def _one_decimal(percent: float) -> str:
     text = f"{percent:.1f}"
-    return text[:-2] if text.endswith(".0") else text
+    return text[:-2] if text in ("0.0", "100.0") else text
 
 
 def ci(low: float | None, high: float | None) -> str:
-    """An interval of rates in percent, one decimal: ``(0.963, 1.0)`` -> ``[96.3, 100]``."""
+    """An interval of rates in percent, one decimal (none at 0 and 100): ``[96.3, 100]``."""
     if low is None or high is None:
         return ""
     return f"[{_one_decimal(100.0 * low)}, {_one_decimal(100.0 * high)}]"
@@ -61,8 +61,7 @@ def markdown_table(header: Sequence[str], rows: Sequence[Sequence[str]]) -> str:
 
 
 def _seeds(study: Study) -> str:
-    settings = study.get("settings", {})
-    return f"`{settings.get('seeds', 'test')}` seeds (root seed {settings.get('seed', 0)})"
+    return f"`{study.get('settings', {}).get('seeds', 'test')}` seed set"
 
 
 def _figures(study: Study, figures_url: str) -> str:
