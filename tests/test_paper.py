@@ -14,6 +14,7 @@ from codesign_mb.cli.common import load_config
 from codesign_mb.cli.paper import _STUDY_NAMES
 from codesign_mb.core.results import ResultsDir
 from codesign_mb.core.seeds import SEED_SETS
+from codesign_mb.studies import paper
 from codesign_mb.studies.demo import LqgDemoConfig, run_lqg_demo
 from codesign_mb.studies.fig_wifi import CapacityConfig
 from codesign_mb.studies.paper import (
@@ -72,7 +73,9 @@ def test_fig_wifi_grid_is_configs_fig_wifi_toml() -> None:
     )
 
 
-def test_run_resumes_reruns_on_new_settings_and_records_the_manifest(tmp_path: Path) -> None:
+def test_run_resumes_reruns_on_new_settings_and_records_the_manifest(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     out = tmp_path / "paper"
     config = PaperConfig(only=("lqg",), smoke=True, workers=1)
     first = run_paper(config, out, command="codesign paper --only lqg --smoke")
@@ -94,8 +97,14 @@ def test_run_resumes_reruns_on_new_settings_and_records_the_manifest(tmp_path: P
     assert manifest["workers"] == 1 and PaperConfig().worker_count() == 2
     finished = read_study(out / "lqg")["finished"]  # type: ignore[index]
 
-    assert run_paper(config, out).status == {"lqg": "reused"}
+    lines: list[str] = []
+    assert run_paper(config, out, log=lines.append).status == {"lqg": "reused"}
     assert read_study(out / "lqg")["finished"] == finished  # type: ignore[index]
+    assert lines[0].startswith("lqg: complete, reused") and "commit" not in lines[0]
+    with monkeypatch.context() as patch:  # the code moved on: reused, and said so
+        patch.setattr(paper, "provenance", lambda *a: {"commit": "0" * 40})
+        run_paper(config, out, log=lines.append)
+    assert f"made at commit {manifest['provenance']['commit']}, now {'0' * 40}" in lines[-1]
     dev = PaperConfig(only=("lqg",), smoke=True, workers=1, seeds="dev")
     assert run_paper(dev, out).status == {"lqg": "ran"}  # new settings: rerun
     assert ResultsDir(out / "lqg").config("lqg")["seed"] == SEED_SETS["dev"]

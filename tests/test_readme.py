@@ -24,7 +24,7 @@ from codesign_mb.studies.readme import (
     replace_block,
     update_readme,
 )
-from codesign_mb.studies.readme_tables import ci, pct
+from codesign_mb.studies.readme_tables import ci, header, pct
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -215,6 +215,22 @@ def test_readme_block_replaced_in_place_and_a_changed_number_makes_it_stale(
     stored.write_text(json.dumps(data))
     assert update_readme(readme, docs, check=True) is True
     assert "63 % [53.2, 71.8]" in readme.read_text()  # check changes nothing
+
+
+def test_header_names_each_commit_of_a_run_resumed_across_commits() -> None:
+    run = {
+        "command": "codesign paper -o results/paper",
+        "seeds": "test",
+        "seed": 0,
+        "created": "2026-12-01T20:39:19+00:00",
+        "provenance": {"commit": "b" * 40},
+        "studies": {"lqg": {"commit": "a" * 40}, "fig_cn": {"commit": "b" * 40 + "+dirty"}},
+    }
+    text = header(run)
+    assert "run on the `test` seed set (root seed 0) at commits `aaaaaaa` (`lqg`); " in text
+    assert "`bbbbbbb` (with uncommitted changes) (`fig_cn`) on 2026-12-01." in text
+    run["studies"] = {"lqg": {"commit": "b" * 40}, "fig_cn": {"commit": "b" * 40}}
+    assert "at commit `bbbbbbb` on 2026-12-01." in header(run)
 
 
 def test_markers_must_be_there_once() -> None:

@@ -336,7 +336,8 @@ def run_paper(
     """Run the selected studies into ``out_dir`` (resuming), then write the manifest.
 
     ``progress`` wraps each study's stream of finished episodes or points; ``log`` gets one
-    line per study (ran, reused, with its wall time). Returns the manifest and the statuses.
+    line per study (ran, reused, with its wall time; a reused study made at another commit is
+    said to be so). Returns the manifest and the statuses.
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -344,6 +345,7 @@ def run_paper(
     say: Log = log or (lambda _: None)
     started = time.perf_counter()
     status: dict[str, str] = {}
+    commit = provenance()["commit"]
     for name in config.selected():
         if name == "figures":
             settings: dict[str, Any] = {"inputs": _finished_inputs(out)}
@@ -352,7 +354,11 @@ def run_paper(
         done = read_study(out / name)
         if done is not None and done.get("settings") == settings and not config.force:
             status[name] = "reused"
-            say(f"{name}: complete, reused ({done.get('wall_time_s', 0):.0f} s when run)")
+            then = done.get("provenance", {}).get("commit")
+            stale = (
+                f"; made at commit {then}, now {commit}: --force reruns" if then != commit else ""
+            )
+            say(f"{name}: complete, reused ({done.get('wall_time_s', 0):.0f} s when run{stale})")
             continue
         seconds = _run_study(name, settings, out, config.worker_count(), wrap)
         status[name] = "ran"
