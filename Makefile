@@ -7,7 +7,7 @@ STAMP := $(VENV)/.installed
 export MUJOCO_GL ?= osmesa
 export PYOPENGL_PLATFORM ?= $(MUJOCO_GL)
 
-.PHONY: install sysdeps demo test test-slow lint format bench clean
+.PHONY: install sysdeps demo test test-slow lint format bench paper clean
 
 # Best effort: OSMesa for headless rendering, when we may install Debian packages.
 sysdeps:
@@ -53,6 +53,11 @@ format: install
 
 bench: install
 	$(BIN)/codesign bench all
+
+# Every table and figure of README's results (test seeds; resumes a partial results/paper),
+# then docs/results, docs/figures and README's results block from it.
+paper: install
+	$(BIN)/codesign paper -o results/paper -j 2 --readme README.md
 
 clean:
 	rm -rf $(VENV) build *.egg-info

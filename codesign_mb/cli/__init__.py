@@ -32,6 +32,7 @@ _COMMAND_MODULES = (
     "train",
     "table",
     "evaluate",
+    "paper",
 )
 
 

@@ -202,11 +202,17 @@ def plot_pareto(
     axes[0, 0].set_ylabel("success rate (95 % Wilson interval)")
     ring = Line2D([], [], ls="", marker="o", ms=10, mfc="none", mec="black")
     handles = {**style.handles, **reference_legend(style.reference_kinds, style.stack_greys)}
+    entries = len(handles) + 1
+    ncols = min(4, 2 * len(plants), entries) if len(plants) > 1 else 1 if entries <= 12 else 2
+    # The legend goes below the panels: grow the figure by its height (and, for one panel
+    # with two columns, its width) so that the panels keep their size.
+    width = 4.6 * len(plants) if len(plants) > 1 else max(4.6, 3.3 * ncols)
+    fig.set_size_inches(width, 4.6 + 0.16 * math.ceil(entries / ncols))
     fig.legend(
         [*handles.values(), ring],
         [*handles.keys(), "Pareto-optimal (filled and ringed; dashed: the front)"],
         loc="outside lower center",
-        ncols=1 if len(plants) == 1 else min(4, 2 * len(plants), len(handles) + 1),
+        ncols=ncols,
         fontsize=7,
     )
     if title:

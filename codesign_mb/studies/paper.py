@@ -1,0 +1,475 @@
+"""``codesign paper``: every table and figure README shows, in one run, into one folder.
+
+The studies are the existing ones, called with the settings README's results section needs,
+each on the ``test`` seed set (:data:`~codesign_mb.core.seeds.SEED_SETS`) and each into its
+own subfolder of the results folder ``OUT``:
+
+``lqg/``
+    The linear baseline, :func:`~codesign_mb.studies.demo.run_lqg_demo`
+    (``codesign demo --scenario lqg``): table ``lqg``, one row per reliability.
+``table_realistic/``, ``table_variable/``
+    :func:`~codesign_mb.studies.table_figures.run_table_study` with the model-based rows and
+    their reference rows on that scenario (``codesign table --scenario NAME --pipeline
+    model-based``): ``tab_p``, ``tab_p_episodes``, ``tab_p.md``, ``fig_pareto.png``, Fig. 5.
+``table_paper/``
+    The same with every row, learned ones included (``--scenario paper --pipeline all``; the
+    learned checkpoints were trained on the paper scenario only).
+``fig_cn/``
+    Fig. 4, :func:`~codesign_mb.studies.fig_cn.run_fig_cn_study` (``codesign evaluate fig-cn``).
+``fig_wifi/``
+    Fig. 6, :func:`~codesign_mb.studies.fig_wifi_figures.run_capacity_study` with the grid of
+    ``configs/fig_wifi.toml`` (:data:`FIG_WIFI_GRID`; ``codesign wifi capacity -c
+    configs/fig_wifi.toml``).
+``figures/<study>/``
+    ``codesign report`` of each study's folder (:func:`~codesign_mb.studies.report.build_report`:
+    the figures by their one renderer and a ``report.md``).
+
+A study's folder is complete when its ``study.json`` exists (written last: the study's
+settings, the equivalent command, its wall time and provenance). A study runs into a hidden
+``.<name>.partial`` folder that replaces its folder only when done, so an interrupted run
+leaves the previous complete folder or none. A complete folder with the same settings is
+reused (``force`` reruns it). ``OUT/paper.json`` is the manifest: every study's status
+(``ran``; ``reused``: complete with the same settings; ``kept``: not selected, complete from
+an earlier run; ``not selected``), settings, command and wall time, the
+run's total wall time and the provenance (commit, versions, SHA-256 of the checkpoints).
+README's results section is rendered from this folder by :mod:`codesign_mb.studies.readme`.
+"""
+
+from __future__ import annotations
+
+import json
+import resource
+import shutil
+import time
+from collections.abc import Callable, Iterable, Mapping
+from dataclasses import asdict, dataclass, field
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+import pandas as pd
+
+from codesign_mb.core.registry import resolve_checkpoint
+from codesign_mb.core.results import atomic_write, provenance, to_jsonable, write_results
+from codesign_mb.core.seeds import seed_set
+
+__all__ = [
+    "FIG_WIFI_GRID",
+    "MANIFEST",
+    "STUDIES",
+    "STUDY_FILE",
+    "TABLE_STUDIES",
+    "PaperConfig",
+    "PaperRun",
+    "read_study",
+    "run_paper",
+    "study_command",
+    "study_settings",
+]
+
+TABLE_STUDIES: dict[str, tuple[str, str]] = {
+    "table_realistic": ("realistic", "model-based"),
+    "table_variable": ("variable", "model-based"),
+    "table_paper": ("paper", "all"),
+}
+"""Table study -> (scenario, pipeline). Learned checkpoints exist for ``paper`` only."""
+
+STUDIES: tuple[str, ...] = ("lqg", *TABLE_STUDIES, "fig_cn", "fig_wifi", "figures")
+"""Every study of the run, in run order (``figures`` renders the others, so it comes last)."""
+
+STUDY_FILE = "study.json"
+"""Written last into a study's folder: its settings, command, wall time and provenance."""
+
+MANIFEST = "paper.json"
+"""The manifest of the results folder."""
+
+FIG_WIFI_GRID: dict[str, Any] = {
+    "robots": (1, 2, 4, 6, 7, 8, 10, 12, 16, 24),
+    "robots_by_channel": {"better": (8, 16, 24, 32)},
+    "channels": ("paper", "better"),
+    "schedulers": ("greedy", "convex"),
+}
+"""Fig. 6's grid, the same as ``configs/fig_wifi.toml`` (a test checks they agree)."""
+
+_SMOKE: dict[str, dict[str, Any]] = {
+    "lqg": {"episodes": 2, "horizon": 40},
+    "table": {"trials": 1},
+    "fig_cn": {"trials": 1, "delays": (0, 3), "reliabilities": (1.0, 0.2)},
+    "fig_wifi": {
+        "trials": 1,
+        "robots": (1, 2),
+        "robots_by_channel": {},
+        "channels": ("paper",),
+        "max_steps": 40,
+    },
+}
+"""Tiny settings (``smoke``): every code path, a few episodes each."""
+
+Progress = Callable[..., Iterable[Any]]
+"""``progress(stream, total=..., description=...)`` wraps a stream of finished work items."""
+
+Log = Callable[[str], None]
+
+
+@dataclass(frozen=True)
+class PaperConfig:
+    """What ``codesign paper`` runs.
+
+    Parameters
+    ----------
+    trials:
+        Episodes per row and plant of the tables.
+    fig_cn_trials:
+        Episodes per point of Fig. 4 (64 points).
+    wifi_trials:
+        Trials (N-robot episodes) per point of Fig. 6.
+    lqg_episodes:
+        Episodes per reliability of the linear baseline.
+    workers:
+        Worker processes of every study (results do not depend on it); ``None``: 2, or 1
+        with ``smoke`` (starting a pool costs more than a few episodes).
+    seeds:
+        The named seed set every study runs on (``test``: reported numbers).
+    only, skip:
+        Study names (:data:`STUDIES`) to run only, or to leave out.
+    smoke:
+        Tiny settings (a few episodes per study) to check the whole run quickly.
+    force:
+        Rerun studies whose folder is complete with the same settings.
+    """
+
+    trials: int = 100
+    fig_cn_trials: int = 100
+    wifi_trials: int = 5
+    lqg_episodes: int = 8
+    workers: int | None = None
+    seeds: str = "test"
+    only: tuple[str, ...] = ()
+    skip: tuple[str, ...] = ()
+    smoke: bool = False
+    force: bool = False
+
+    def __post_init__(self) -> None:
+        for name in ("trials", "fig_cn_trials", "wifi_trials", "lqg_episodes", "workers"):
+            value = getattr(self, name)
+            if name == "workers" and value is None:
+                continue
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
+        seed_set(self.seeds)  # an unknown name names the sets
+        for name in ("only", "skip"):
+            value = tuple(getattr(self, name))
+            object.__setattr__(self, name, value)
+            unknown = [s for s in value if s not in STUDIES]
+            if unknown:
+                raise ValueError(
+                    f"{name} must name studies among {', '.join(STUDIES)}, got {unknown!r}"
+                )
+
+    def worker_count(self) -> int:
+        """``workers``, or its default: 2, or 1 with ``smoke``."""
+        return self.workers if self.workers is not None else 1 if self.smoke else 2
+
+    def selected(self) -> tuple[str, ...]:
+        """The studies to run, in run order."""
+        return tuple(s for s in STUDIES if (not self.only or s in self.only) and s not in self.skip)
+
+
+# -- settings and commands ----------------------------------------------------------------------
+def study_settings(name: str, config: PaperConfig) -> dict[str, Any]:
+    """The settings that determine study ``name``'s results (JSON types); not ``figures``'.
+
+    Worker counts are not settings: the results do not depend on them.
+    """
+    seed = seed_set(config.seeds)
+    smoke = config.smoke
+    if name == "lqg":
+        settings: dict[str, Any] = {"episodes": config.lqg_episodes, "seed": seed}
+        settings.update(_SMOKE["lqg"] if smoke else {})
+    elif name in TABLE_STUDIES:
+        scenario, pipeline = TABLE_STUDIES[name]
+        settings = {"scenario": scenario, "pipeline": pipeline, "trials": config.trials}
+        settings.update(_SMOKE["table"] if smoke else {}, seed=seed)
+    elif name == "fig_cn":
+        settings = {"trials": config.fig_cn_trials, "seed": seed}
+        settings.update(_SMOKE["fig_cn"] if smoke else {})
+    elif name == "fig_wifi":
+        settings = {**FIG_WIFI_GRID, "trials": config.wifi_trials, "seed": seed}
+        settings.update(_SMOKE["fig_wifi"] if smoke else {})
+    else:
+        raise ValueError(f"study must be one of {', '.join(STUDIES[:-1])}, got {name!r}")
+    return dict(to_jsonable({**settings, "seeds": config.seeds}))
+
+
+def study_command(name: str, settings: Mapping[str, Any]) -> str:
+    """The ``codesign`` command that computes the same results as study ``name``."""
+    s, seed = dict(settings), f"--seed {settings.get('seed', 0)}"
+    if name == "lqg":
+        extra = f" --horizon {s['horizon']}" if "horizon" in s else ""
+        return f"codesign demo --scenario lqg -n {s['episodes']}{extra} {seed}"
+    if name in TABLE_STUDIES:
+        return (
+            f"codesign table --scenario {s['scenario']} --pipeline {s['pipeline']} "
+            f"-n {s['trials']} {seed}"
+        )
+    if name == "fig_cn":
+        grid = "".join(f" --delay {d}" for d in s.get("delays", ()))
+        grid += "".join(f" -q {q:g}" for q in s.get("reliabilities", ()))
+        return f"codesign evaluate fig-cn -n {s['trials']}{grid} {seed}"
+    if name == "fig_wifi":
+        base = f"codesign wifi capacity -c configs/fig_wifi.toml --trials {s['trials']} {seed}"
+        if {k: s[k] for k in FIG_WIFI_GRID} == to_jsonable(FIG_WIFI_GRID) and "max_steps" not in s:
+            return base
+        robots = ",".join(str(n) for n in s["robots"])
+        return (
+            f"codesign wifi capacity --robots {robots} --channels {','.join(s['channels'])} "
+            f"--schedulers {','.join(s['schedulers'])} --trials {s['trials']}"
+            + (f" --max-steps {s['max_steps']}" if s.get("max_steps") else "")
+            + f" {seed}"
+        )
+    if name == "figures":
+        return "codesign report OUT/<study> -o OUT/figures/<study>"
+    raise ValueError(f"study must be one of {', '.join(STUDIES)}, got {name!r}")
+
+
+# -- the studies ----------------------------------------------------------------------------------
+def _run_lqg(settings: Mapping[str, Any], out: Path) -> None:
+    from codesign_mb.studies.demo import LqgDemoConfig, run_lqg_demo
+
+    fields = {k: settings[k] for k in ("episodes", "seed", "horizon") if k in settings}
+    cfg = LqgDemoConfig(**fields)
+    result = run_lqg_demo(cfg)  # seconds: no progress bar
+    rows = pd.DataFrame(result.pop("rows"))
+    write_results(out, table=rows, config=cfg, name="lqg", extra=result)
+
+
+def _run_table(
+    name: str, settings: Mapping[str, Any], out: Path, workers: int, progress: Progress
+) -> dict[str, Path]:
+    from codesign_mb.studies.table import TableConfig
+    from codesign_mb.studies.table_figures import run_table_study
+
+    cfg = TableConfig(
+        scenario=settings["scenario"],
+        pipeline=settings["pipeline"],
+        trials=settings["trials"],
+        seed=settings["seed"],
+        workers=workers,
+    )
+    run_table_study(cfg, out, progress=progress, command=study_command(name, settings))
+    return _checkpoints(cfg)
+
+
+def _checkpoints(cfg: Any) -> dict[str, Path]:
+    """The learned checkpoints a table's rows use, by their path as the rows name them."""
+    found: dict[str, Path] = {}
+    for row in cfg.table_rows():
+        for spec in (row.controller, row.estimator, row.qos):
+            if spec.checkpoint and spec.checkpoint not in found:
+                try:
+                    found[spec.checkpoint] = resolve_checkpoint(spec.checkpoint)
+                except ValueError:
+                    continue  # the table lists the row as skipped, with the reason
+    return found
+
+
+def _run_fig_cn(settings: Mapping[str, Any], out: Path, workers: int, progress: Progress) -> None:
+    from codesign_mb.studies.fig_cn import FigCnConfig, run_fig_cn_study
+
+    grid = {k: settings[k] for k in ("delays", "reliabilities") if k in settings}
+    cfg = FigCnConfig(trials=settings["trials"], seed=settings["seed"], workers=workers, **grid)
+    run_fig_cn_study(
+        cfg, out, progress=lambda it, total: progress(it, total=total, description="fig_cn")
+    )
+
+
+def _run_fig_wifi(settings: Mapping[str, Any], out: Path, workers: int, progress: Progress) -> None:
+    from codesign_mb.core.config import from_mapping
+    from codesign_mb.studies.fig_wifi import CapacityConfig
+    from codesign_mb.studies.fig_wifi_figures import run_capacity_study
+
+    fields = {k: v for k, v in settings.items() if k != "seeds"}
+    cfg = from_mapping(CapacityConfig, {**fields, "workers": workers})
+    total = len(cfg.points())
+    run_capacity_study(
+        cfg, out, progress=lambda it: progress(it, total=total, description="fig_wifi")
+    )
+
+
+def _run_figures(inputs: Mapping[str, Any], out: Path, root: Path) -> None:
+    from codesign_mb.studies.report import build_report
+
+    for name in inputs:
+        build_report(root / name, out / name)
+
+
+# -- the run --------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class PaperRun:
+    """What :func:`run_paper` did: the manifest it wrote and each study's status."""
+
+    out_dir: Path
+    manifest: dict[str, Any]
+    status: dict[str, str] = field(default_factory=dict)
+
+    @property
+    def path(self) -> Path:
+        return self.out_dir / MANIFEST
+
+
+def read_study(folder: str | Path) -> dict[str, Any] | None:
+    """The ``study.json`` of a complete study folder, or ``None``."""
+    path = Path(folder) / STUDY_FILE
+    if not path.is_file():
+        return None
+    return dict(json.loads(path.read_text()))
+
+
+def run_paper(
+    config: PaperConfig,
+    out_dir: str | Path,
+    *,
+    progress: Progress | None = None,
+    log: Log | None = None,
+    command: str = "",
+) -> PaperRun:
+    """Run the selected studies into ``out_dir`` (resuming), then write the manifest.
+
+    ``progress`` wraps each study's stream of finished episodes or points; ``log`` gets one
+    line per study (ran, reused, with its wall time; a reused study made at another commit is
+    said to be so). Returns the manifest and the statuses.
+    """
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    wrap: Progress = progress or (lambda stream, **_: stream)
+    say: Log = log or (lambda _: None)
+    started = time.perf_counter()
+    status: dict[str, str] = {}
+    commit = provenance()["commit"]
+    for name in config.selected():
+        if name == "figures":
+            settings: dict[str, Any] = {"inputs": _finished_inputs(out)}
+        else:
+            settings = study_settings(name, config)
+        done = read_study(out / name)
+        if done is not None and done.get("settings") == settings and not config.force:
+            status[name] = "reused"
+            then = done.get("provenance", {}).get("commit")
+            stale = (
+                f"; made at commit {then}, now {commit}: --force reruns" if then != commit else ""
+            )
+            say(f"{name}: complete, reused ({done.get('wall_time_s', 0):.0f} s when run{stale})")
+            continue
+        seconds = _run_study(name, settings, out, config.worker_count(), wrap)
+        status[name] = "ran"
+        say(f"{name}: {seconds:.0f} s -> {out / name}")
+    manifest = _manifest(config, out, status, time.perf_counter() - started, command)
+    with atomic_write(out / MANIFEST, "w") as fh:
+        fh.write(json.dumps(manifest, indent=2, allow_nan=False) + "\n")
+    return PaperRun(out, manifest, status)
+
+
+def _finished_inputs(out: Path) -> dict[str, str]:
+    """The complete study folders ``figures`` renders, with when each finished."""
+    found = {}
+    for name in STUDIES[:-1]:
+        done = read_study(out / name)
+        if done is not None:
+            found[name] = str(done.get("finished", ""))
+    return found
+
+
+def _run_study(
+    name: str, settings: dict[str, Any], out: Path, workers: int, progress: Progress
+) -> float:
+    """Run one study into ``.<name>.partial``, write its ``study.json``, swap it into place."""
+    partial, folder = out / f".{name}.partial", out / name
+    shutil.rmtree(partial, ignore_errors=True)
+    partial.mkdir(parents=True)
+    started_at = datetime.now(UTC).isoformat(timespec="seconds")
+    started, cpu = time.perf_counter(), _cpu_seconds()
+    checkpoints: Mapping[str, Path] = {}
+    if name == "lqg":
+        _run_lqg(settings, partial)
+    elif name in TABLE_STUDIES:
+        checkpoints = _run_table(name, settings, partial, workers, progress)
+    elif name == "fig_cn":
+        _run_fig_cn(settings, partial, workers, progress)
+    elif name == "fig_wifi":
+        _run_fig_wifi(settings, partial, workers, progress)
+    else:
+        _run_figures(settings["inputs"], partial, out)
+    seconds = time.perf_counter() - started
+    record = {
+        "study": name,
+        "command": study_command(name, settings),
+        "settings": settings,
+        "workers": workers,
+        "wall_time_s": round(seconds, 1),
+        "cpu_time_s": round(_cpu_seconds() - cpu, 1),
+        "started": started_at,
+        "finished": datetime.now(UTC).isoformat(timespec="seconds"),
+        "provenance": provenance(checkpoints),
+    }
+    with atomic_write(partial / STUDY_FILE, "w") as fh:
+        fh.write(json.dumps(to_jsonable(record), indent=2, allow_nan=False) + "\n")
+    old = out / f".{name}.old"
+    shutil.rmtree(old, ignore_errors=True)
+    if folder.exists():
+        folder.rename(old)
+    partial.rename(folder)
+    shutil.rmtree(old, ignore_errors=True)
+    return seconds
+
+
+def _cpu_seconds() -> float:
+    """CPU seconds (user + system) of this process and of its finished children (the pool
+    workers): on a shared machine, what a study costs regardless of who else runs."""
+    own, children = (
+        resource.getrusage(resource.RUSAGE_SELF),
+        resource.getrusage(resource.RUSAGE_CHILDREN),
+    )
+    return own.ru_utime + own.ru_stime + children.ru_utime + children.ru_stime
+
+
+def _manifest(
+    config: PaperConfig, out: Path, status: dict[str, str], seconds: float, command: str
+) -> dict[str, Any]:
+    """``paper.json``: every study's record (or why absent), wall times, provenance."""
+    studies: dict[str, Any] = {}
+    checkpoints: dict[str, str] = {}
+    for name in STUDIES:
+        done = read_study(out / name)
+        if done is None:
+            studies[name] = {"status": status.get(name, "not selected")}
+            continue
+        studies[name] = {
+            "status": status.get(name, "kept"),
+            **{
+                k: done.get(k)
+                for k in ("command", "settings", "wall_time_s", "cpu_time_s", "finished")
+            },
+            "commit": done.get("provenance", {}).get("commit"),
+        }
+        checkpoints.update(done.get("provenance", {}).get("checkpoints", {}))
+    recorded = [s["wall_time_s"] for s in studies.values() if s.get("wall_time_s") is not None]
+    cpu = [s["cpu_time_s"] for s in studies.values() if s.get("cpu_time_s") is not None]
+    record = provenance()
+    record["checkpoints"] = dict(sorted(checkpoints.items()))
+    return dict(
+        to_jsonable(
+            {
+                "command": command,
+                "config": asdict(config),
+                "workers": config.worker_count(),
+                "seeds": config.seeds,
+                "seed": seed_set(config.seeds),
+                "created": datetime.now(UTC).isoformat(timespec="seconds"),
+                "wall_time_s": round(seconds, 1),
+                "studies_wall_time_s": round(sum(recorded), 1),
+                "studies_cpu_time_s": round(sum(cpu), 1),
+                "studies": studies,
+                "provenance": record,
+            }
+        )
+    )
