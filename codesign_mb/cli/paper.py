@@ -53,8 +53,12 @@ def paper_command(
     ctx: typer.Context,
     out: OutOption = Path("results/paper"),
     trials: Annotated[
-        int, typer.Option("--trials", "-n", help="Episodes per row of the tables.")
+        int,
+        typer.Option("--trials", "-n", help="Episodes per row of the variable and paper tables."),
     ] = 100,
+    realistic_trials: Annotated[
+        int, typer.Option("--realistic-trials", help="Episodes per row of the realistic table.")
+    ] = 200,
     fig_cn_trials: Annotated[
         int, typer.Option("--fig-cn-trials", help="Episodes per point of Fig. 4.")
     ] = 100,
@@ -102,6 +106,7 @@ def paper_command(
             ctx,
             {
                 "trials": trials,
+                "realistic_trials": realistic_trials,
                 "fig_cn_trials": fig_cn_trials,
                 "wifi_trials": wifi_trials,
                 "lqg_episodes": lqg_episodes,

@@ -119,6 +119,9 @@ class PaperConfig:
     ----------
     trials:
         Episodes per row and plant of the tables.
+    realistic_trials:
+        Episodes per row of the ``realistic`` table (the benchmark's scenario, whose ``blind``
+        and ``oracle`` references are read at 200 episodes).
     fig_cn_trials:
         Episodes per point of Fig. 4 (64 points).
     wifi_trials:
@@ -139,6 +142,7 @@ class PaperConfig:
     """
 
     trials: int = 100
+    realistic_trials: int = 200
     fig_cn_trials: int = 100
     wifi_trials: int = 5
     lqg_episodes: int = 8
@@ -150,7 +154,8 @@ class PaperConfig:
     force: bool = False
 
     def __post_init__(self) -> None:
-        for name in ("trials", "fig_cn_trials", "wifi_trials", "lqg_episodes", "workers"):
+        numbers = ("trials", "realistic_trials", "fig_cn_trials", "wifi_trials", "lqg_episodes")
+        for name in (*numbers, "workers"):
             value = getattr(self, name)
             if name == "workers" and value is None:
                 continue
@@ -188,7 +193,8 @@ def study_settings(name: str, config: PaperConfig) -> dict[str, Any]:
         settings.update(_SMOKE["lqg"] if smoke else {})
     elif name in TABLE_STUDIES:
         scenario, pipeline = TABLE_STUDIES[name]
-        settings = {"scenario": scenario, "pipeline": pipeline, "trials": config.trials}
+        trials = config.realistic_trials if scenario == "realistic" else config.trials
+        settings = {"scenario": scenario, "pipeline": pipeline, "trials": trials}
         settings.update(_SMOKE["table"] if smoke else {}, seed=seed)
     elif name == "fig_cn":
         settings = {"trials": config.fig_cn_trials, "seed": seed}
