@@ -136,11 +136,14 @@ def tune_command(
     out = out if out is not None else Path("results/tune") / cfg.target_name()
     write_tune_results(result, out, command=command)
     note(f"results written to {out}")
+    if result.limited_by == "high":
+        note("every probe met the target: --high set the threshold (a larger one may do as well)")
     summary = {
         "target": cfg.target_name(),
         "threshold_m": result.threshold_m,
         "target_success": cfg.target_success,
         "target_met": result.target_met,
+        "limited_by": result.limited_by,
         "dev_success_rate": result.chosen["success_rate"],
         "dev_success_ci": [result.chosen["success_ci_low"], result.chosen["success_ci_high"]],
         "dev_mean_requested_reliability": result.chosen["mean_requested_reliability"],

@@ -9,6 +9,7 @@ table`` draws them from :func:`~codesign_mb.studies.table.run_table`'s summary a
 
 from __future__ import annotations
 
+import contextlib
 import math
 import time
 from collections.abc import Callable, Sequence
@@ -19,6 +20,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from codesign_mb.core.registry import resolve_checkpoint
 from codesign_mb.core.results import atomic_write, to_jsonable, write_results
 from codesign_mb.evaluation.phase_metrics import SUMMARY_COLUMNS as PHASE_COLUMNS
 from codesign_mb.studies.figures import new_figure, save_png
@@ -30,6 +32,7 @@ from codesign_mb.studies.table_refs import (
     reference_legend,
 )
 from codesign_mb.studies.table_rows import row_for_plant
+from codesign_mb.studies.tuned import tuned_file
 
 __all__ = [
     "SUMMARY_COLUMNS",
@@ -39,6 +42,7 @@ __all__ = [
     "plot_pareto",
     "plot_timeline",
     "run_table_study",
+    "table_inputs",
     "write_table_outputs",
 ]
 
@@ -382,7 +386,8 @@ def write_table_outputs(
     :func:`~codesign_mb.studies.table.timeline_row_name` has a successful episode on the
     first plant, ``fig_lat.*`` (its per-step record, re-run from its seed) and
     ``fig_lat.png`` (:func:`plot_timeline`). ``extra`` goes into every table's metadata,
-    with the plants and the rows as run on each (:func:`expanded_rows`).
+    with the plants and the rows as run on each (:func:`expanded_rows`); the provenance
+    holds the SHA-256 of every file the rows read (:func:`table_inputs`).
     """
     out = Path(out_dir)
     plants = {
@@ -391,11 +396,12 @@ def write_table_outputs(
     }
     extra = {**(extra or {}), "plants": plants, "rows": expanded_rows(config)}
     files: dict[str, Path] = {}
-    files["tab_p"] = write_results(out, table=summary, config=config, name="tab_p", extra=extra)[
-        "parquet"
-    ]
+    inputs = table_inputs(config)
+    files["tab_p"] = write_results(
+        out, table=summary, config=config, name="tab_p", extra=extra, checkpoints=inputs
+    )["parquet"]
     files["tab_p_episodes"] = write_results(
-        out, table=episodes, config=config, name="tab_p_episodes", extra=extra
+        out, table=episodes, config=config, name="tab_p_episodes", extra=extra, checkpoints=inputs
     )["parquet"]
     with atomic_write(out / "tab_p.md", "w") as fh:
         fh.write(markdown_table(summary))
@@ -456,6 +462,20 @@ def expanded_rows(config: TableConfig) -> dict[str, list[dict[str, Any]]]:
         plant.label: [to_jsonable(row_for_plant(row, plant)) for row in rows]
         for plant in config.table_plants()
     }
+
+
+def table_inputs(config: TableConfig) -> dict[str, Path]:
+    """The shipped files the table's rows read, by name: each checkpoint found (a missing one
+    is in the summary's ``status``) and the tuned thresholds' file when it exists."""
+    found: dict[str, Path] = {}
+    for row in config.table_rows():
+        for spec in (row.controller, row.estimator, row.qos):
+            if spec.checkpoint and spec.checkpoint not in found:
+                with contextlib.suppress(ValueError):
+                    found[spec.checkpoint] = resolve_checkpoint(spec.checkpoint)
+    if tuned_file().is_file():
+        found["tuned/rule_threshold.json"] = tuned_file()
+    return found
 
 
 def run_table_study(

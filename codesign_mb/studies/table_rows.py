@@ -168,9 +168,10 @@ def row_for_plant(row: TableRow, plant: TablePlant | PlantSpec, *, scenario: str
     """
     if row.qos.kind != "rule" or row.qos.options.get("threshold_m") != TUNED:
         return row
+    spec = plant.spec if isinstance(plant, TablePlant) else plant
     if isinstance(plant, TablePlant):
-        plant, scenario = plant.spec, plant.scenario
-    choice = rule_threshold(plant, row.qos.options, scenario=scenario)
+        scenario = plant.scenario
+    choice = rule_threshold(spec, row.qos.options, scenario=scenario)
     qos = dataclasses.replace(
         row.qos, options={**row.qos.options, "threshold_m": choice.threshold_m}
     )

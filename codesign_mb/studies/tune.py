@@ -17,7 +17,9 @@ sees how sure that is (at 100 episodes a 98 % point estimate has a lower bound o
 Success is assumed to fall as the threshold grows; on a finite sample it need not, and the
 probes are all recorded so a non-monotone run is visible. When no probe reaches the target,
 ``low_m`` itself is measured: the chosen threshold is always one whose dev figures were
-measured, with ``target_met`` saying whether it reached the target.
+measured, with ``target_met`` saying whether it reached the target. ``limited_by`` says when
+the bracket, not the plant, set the answer: ``"high"`` when every probe met the target (a
+larger threshold may do as well), ``"low"`` when none did.
 
 The results folder gets ``tune_probes`` (one row per probe, in order, ``chosen`` marking the
 chosen one) and ``tune_episodes`` (every episode of every probe), with the config, the
@@ -31,7 +33,7 @@ import dataclasses
 import math
 import time
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
@@ -141,7 +143,9 @@ class TuneResult:
     """What :func:`run_tune` found.
 
     ``threshold_m`` is the chosen threshold and ``chosen`` its probe (a row of ``probes``);
-    ``target_met`` whether its success reached the target; ``probes`` one row per probe
+    ``target_met`` whether its success reached the target; ``limited_by`` ``"high"`` or
+    ``"low"`` when the bracket's end set it (module docstring), else ``""``; ``probes`` one
+    row per probe
     (``probe``, ``threshold_m``, ``success_rate``, ``success_ci_low``, ``success_ci_high``,
     ``mean_requested_reliability``, ``delivered_fraction``, ``meets_target``, ``chosen``);
     ``episodes`` every episode (with ``probe`` and ``threshold_m``).
@@ -154,7 +158,7 @@ class TuneResult:
     probes: pd.DataFrame
     episodes: pd.DataFrame
     wall_time_s: float
-    extra: dict[str, Any] = field(default_factory=dict)
+    limited_by: str = ""
 
 
 def run_tune(
@@ -196,10 +200,12 @@ def run_tune(
         high=config.high_m,
         iterations=config.iterations,
     )
-    if not any(p.success_rate >= config.target_success for p in probes):
+    feasible = [p.success_rate >= config.target_success for p in probes]
+    if not any(feasible):
         measure(config.low_m)  # nothing probed reached the target: measure the fallback
+    limited_by = "high" if all(feasible) else "" if any(feasible) else "low"
     frame = _probe_frame(tables, config.target_success, chosen=best)
-    chosen = frame[frame["chosen"]].iloc[0].to_dict()
+    chosen = {str(k): v for k, v in frame[frame["chosen"]].iloc[0].items()}
     episodes = pd.concat(tables.values(), ignore_index=True)
     return TuneResult(
         config=config,
@@ -209,6 +215,7 @@ def run_tune(
         probes=frame,
         episodes=episodes,
         wall_time_s=round(time.perf_counter() - started, 1),
+        limited_by=limited_by,
     )
 
 
@@ -245,6 +252,7 @@ def _search(result: TuneResult) -> dict[str, Any]:
         "threshold_m": result.threshold_m,
         "target_success": config.target_success,
         "target_met": result.target_met,
+        "limited_by": result.limited_by,
         "success_rate": chosen["success_rate"],
         "success_ci_low": chosen["success_ci_low"],
         "success_ci_high": chosen["success_ci_high"],

@@ -4,8 +4,9 @@
 ``threshold_m`` that ``codesign tune`` chose on the ``dev`` seed set
 (:mod:`codesign_mb.studies.tune`) with what it was chosen for and how:
 
-``threshold_m``, ``target_success``, ``target_met``
-    The threshold, the success target and whether the threshold's dev success reached it.
+``threshold_m``, ``target_success``, ``target_met``, ``limited_by``
+    The threshold, the success target, whether the threshold's dev success reached it and
+    whether an end of the bracket set it (``"high"``: every probe met the target).
 ``success_rate``, ``success_ci_low``, ``success_ci_high``, ``mean_requested_reliability``
     The threshold's figures on ``dev`` (a point estimate decided ``target_met``; the interval
     says how sure it is).
@@ -97,7 +98,8 @@ def rule_options(options: Mapping[str, Any]) -> dict[str, Any]:
     """
     effective = {**rule_defaults(), **options}
     effective.pop("threshold_m", None)
-    return to_jsonable(effective)  # type: ignore[no-any-return]
+    normalised: dict[str, Any] = to_jsonable(effective)
+    return normalised
 
 
 def plant_config(plant: PlantSpec) -> dict[str, Any]:
@@ -186,7 +188,8 @@ def rule_threshold(
             float(entry["threshold_m"]),
             f"tuned on {entry['seed_set']} for {name} ({entry['episodes_per_probe']} "
             f"episodes per probe, target {entry['target_success']:g}, "
-            f"{'met' if entry['target_met'] else 'NOT met'})",
+            f"{'met' if entry['target_met'] else 'NOT met'}"
+            f"{', at the top of its bracket' if entry.get('limited_by') == 'high' else ''})",
             name,
         )
     if stale:
