@@ -237,7 +237,7 @@ def test_rows_take_the_threshold_tuned_for_their_plant(tuned_path: Path) -> None
     assert row.qos.options["threshold_m"] == TUNED
     # The 0.2 m/s preset is the paper scenario's plant: it gets paper's threshold.
     on_slow = row_for_plant(row, PLANT_PRESETS["0.2"])
-    assert on_slow.qos.options == {"threshold_m": 0.123, "low": 0.0}
+    assert on_slow.qos.options == {**row.qos.options, "threshold_m": 0.123}  # the rest kept
     assert on_slow.threshold_source.startswith("tuned on dev for paper")
     # Not tuned (yet): the documented default, saying so.
     on_fast = row_for_plant(row, PLANT_PRESETS["0.6"])

@@ -227,8 +227,12 @@ def plant_options(scenario: str, params: Params, belt_speed_mps: float) -> dict[
     a belt speed range (``realistic``) the grid's belt speed is the nominal one, what the robot
     assumes; the episode's speed is drawn from the range.
     """
-    preset = scenario if scenario in CONVEYOR_SCENARIOS else "paper"
-    return {**scenario_options(preset), **params.plant_options_at(belt_speed_mps)}
+    return {**scenario_options(_preset(scenario)), **params.plant_options_at(belt_speed_mps)}
+
+
+def _preset(scenario: str) -> str:
+    """The conveyor scenario of a sweep scenario name (``"conveyor"`` is ``"paper"``)."""
+    return scenario if scenario in CONVEYOR_SCENARIOS else "paper"
 
 
 def channel_share(params: Params, n_robots: int) -> float:
@@ -296,7 +300,7 @@ def run_trial(config: Any, seed: int) -> dict[str, float | int]:
     """
 
     params: Params = config.params if config.params is not None else Params()
-    preset = config.scenario if config.scenario in CONVEYOR_SCENARIOS else DEFAULT_SCENARIO
+    preset = _preset(config.scenario)
     row = row_for_plant(
         pipeline_row(config.pipeline),
         PlantSpec("conveyor", scenario_options(preset)),
