@@ -378,3 +378,20 @@ def test_a_custom_plant_cannot_be_written_by_scenario() -> None:
     )
     with pytest.raises(ValueError, match="custom plant"):
         tuned_entry(result)
+
+
+def test_the_shipped_thresholds_are_current_and_tuned_on_dev() -> None:
+    """Fails when the rule, the co-design row or a scenario changed since the file was made:
+    rerun ``codesign tune --scenario NAME -n 100 -j 2 --write`` (see the file's commands)."""
+    shipped = read_tuned()
+    assert {"realistic", "paper", "constant-0.6", "variable"} <= set(shipped)
+    for scenario, entry in shipped.items():
+        plant = PlantSpec("conveyor", scenario_options(scenario))
+        assert entry["seed_set"] == "dev" and entry["seed"] == SEED_SETS["dev"], scenario
+        assert entry["target_met"] and entry["success_rate"] >= entry["target_success"]
+        assert entry["plant"] == plant_config(plant), f"{scenario}: the scenario changed"
+        assert entry["rule_options"] == rule_options(codesign_rule_row().qos.options), (
+            f"{scenario}: the rule changed since it was tuned"
+        )
+        resolved = row_for_plant(codesign_rule_row(), TablePlant(scenario, scenario=scenario))
+        assert resolved.qos.options["threshold_m"] == entry["threshold_m"]

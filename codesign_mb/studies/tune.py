@@ -189,7 +189,7 @@ def run_tune(
         )
         tables[threshold_m] = table.assign(probe=len(tables), threshold_m=threshold_m)
         if progress is not None:
-            progress(len(tables), config.iterations)
+            progress(len(tables), max(len(tables), config.iterations))
         summary = summarize(table)
         return summary["success_rate"], summary["mean_requested_reliability"]
 
