@@ -25,7 +25,7 @@ from codesign_mb.stages.fitting import new_estimator
 from codesign_mb.stages.qos_env import QosAdaptationEnv, QosEnvConfig
 from codesign_mb.stages.stage_a import evaluate_ideal
 from codesign_mb.stages.stage_a_aids import Shaping
-from codesign_mb.stages.training import SacSpec, make_sac
+from codesign_mb.stages.training import SacSpec, make_sac, stage_seeds
 
 TOY = PlantSpec("toy", {"horizon": 40})
 TINY_SAC = SacSpec(net_arch=(16,), buffer_size=2_000, batch_size=16, learning_starts=10)
@@ -216,11 +216,11 @@ def test_evaluate_ideal_equals_the_former_loop() -> None:
     env = make_plant(TOY)
     untrained = SacController(make_sac(env, TINY_SAC, seed=1))
     for controller in (ToyPickController(), untrained):
-        new = evaluate_ideal(TOY, controller, episodes=3, seed=5)
+        new = evaluate_ideal(TOY, controller, seeds=stage_seeds(5, 3))
         old = _old_evaluate_ideal(TOY, controller, episodes=3, seed=5)
         assert new == old
-    assert evaluate_ideal(TOY, ToyPickController(), episodes=3, seed=5)["success_rate"] == 1.0
-    assert evaluate_ideal(TOY, untrained, episodes=0, seed=5) == {}
+    assert evaluate_ideal(TOY, ToyPickController(), seeds=stage_seeds(5, 3))["success_rate"] == 1.0
+    assert evaluate_ideal(TOY, untrained, seeds=[]) == {}
 
 
 def test_add_demonstrations_equals_the_former_loop() -> None:

@@ -18,12 +18,8 @@ from codesign_mb.network.link import BernoulliLink
 from codesign_mb.network.qos import QosRequest
 from codesign_mb.studies import sweep_conveyor as conveyor
 from codesign_mb.studies.sweep import GRID_COLUMNS, SweepConfig, plan_sweep, run_sweep
-from codesign_mb.studies.table_rows import (
-    MPC_RULE_THRESHOLD_M,
-    all_rows,
-    model_based_rows,
-    model_free_rows,
-)
+from codesign_mb.studies.table_rows import all_rows, model_based_rows, model_free_rows
+from codesign_mb.studies.tuned import TUNED
 
 TIMING = list(conveyor.TIMING_COLUMNS)
 
@@ -59,7 +55,7 @@ def test_pipelines_are_table_rows() -> None:
             f"{name}: table rows with kinds {kinds} differ"
         )
     rule = conveyor.pipeline_row("model-based-rule")
-    assert rule.qos.options["threshold_m"] == MPC_RULE_THRESHOLD_M
+    assert rule.qos.options["threshold_m"] == TUNED  # resolved for the plant by run_trial
     static = conveyor.pipeline_row("model-free-static")
     assert static.qos.options["reliability"] == 1.0
     assert conveyor.pipeline_row("model-free-codesign").qos.checkpoint

@@ -13,6 +13,7 @@ from typer.testing import CliRunner
 
 from codesign_mb.cli import app
 from codesign_mb.core.registry import ComponentSpec
+from codesign_mb.plants.scenarios import SCENARIOS
 from codesign_mb.studies.table import TableConfig, best_row, pareto_front, run_table
 from codesign_mb.studies.table_cost import CPU_COLUMNS, training_cost
 from codesign_mb.studies.table_figures import markdown_table
@@ -128,10 +129,9 @@ def test_pipelines_have_their_default_plants() -> None:
     assert [p.label for p in TableConfig().table_plants()] == ["0.2 m/s"]
     assert [p.label for p in TableConfig(pipeline="model-based").table_plants()] == ["0.2 m/s"]
     plants = TableConfig(pipeline="all").table_plants()
-    assert [p.options for p in plants] == [
-        {"belt_speed_mps": 0.2},
-        {"belt_speed_mps": 0.6},
-        {"belt_speed_mps": 0.6, "belt_profile": "variable"},
+    assert [p.scenario for p in plants] == ["constant-0.2", "constant-0.6", "variable"]
+    assert [p.options for p in plants] == [  # the scenarios' own options, not a copy of them
+        SCENARIOS[p.scenario].options for p in plants
     ]
     picked = TableConfig(pipeline="all", plants=("variable", "0.2")).table_plants()
     assert picked == (PLANT_PRESETS["variable"], PLANT_PRESETS["0.2"])

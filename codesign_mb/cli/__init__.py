@@ -31,6 +31,7 @@ _COMMAND_MODULES = (
     "robot",
     "train",
     "table",
+    "tune",
     "evaluate",
     "paper",
 )

@@ -25,7 +25,7 @@ The task loss ``L`` (:attr:`QosEnvConfig.loss`) is one of
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -40,7 +40,6 @@ from codesign_mb.network.link import BernoulliLink, Link
 from codesign_mb.network.qos import QosCost, QosRequest, reliability_cost
 from codesign_mb.network.wrapper import LinkObservationWrapper
 from codesign_mb.rollout.loop import ClosedLoop
-from codesign_mb.stages.training import stage_seeds
 
 __all__ = ["LOSSES", "QosAdaptationEnv", "QosEnvConfig", "evaluate_qos_agent"]
 
@@ -265,11 +264,11 @@ class QosAdaptationEnv(gym.Env):
 
 
 def evaluate_qos_agent(
-    env: QosAdaptationEnv, model: Any, *, episodes: int, seed: int
+    env: QosAdaptationEnv, model: Any, *, seeds: Sequence[int]
 ) -> dict[str, float]:
-    """Deterministic episodes of ``model`` in ``env``: success rate, mean reliability."""
+    """Deterministic episodes of ``model`` in ``env``, one a seed: success, mean reliability."""
     results = []
-    for s in stage_seeds(seed, episodes):
+    for s in seeds:
         obs, _ = env.reset(seed=s)
         done = False
         while not done:

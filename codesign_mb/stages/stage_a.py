@@ -16,6 +16,7 @@ Hindsight experience replay is not used: the conveyor's goal (lift the object) i
 from __future__ import annotations
 
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -51,6 +52,7 @@ from codesign_mb.stages.training import (
     no_progress,
     require_at_least,
     resume_sac,
+    selection_seeds,
     stage_seeds,
     train_sac_in_chunks,
     write_output,
@@ -74,9 +76,10 @@ class StageAConfig:
     chunk_steps:
         Steps between checkpoints / evaluations.
     seed:
-        Root seed (SAC, env, demonstrations, evaluation).
+        Root seed (SAC, env, demonstrations, final evaluation).
     eval_episodes:
-        Deterministic evaluation episodes after each chunk.
+        Deterministic evaluation episodes after each chunk, on the ``dev`` seed set (the
+        same episodes whatever ``seed``; :func:`~codesign_mb.stages.training.selection_seeds`).
     demo:
         Demonstration controller (``None``: no demonstrations).
     demo_episodes:
@@ -173,19 +176,19 @@ class StageAConfig:
 
 
 def evaluate_ideal(
-    plant: PlantSpec, controller: Controller, *, episodes: int, seed: int
+    plant: PlantSpec, controller: Controller, *, seeds: Sequence[int]
 ) -> dict[str, float]:
-    """Success rate and mean return of ``controller`` on the perfect state.
+    """Success rate and mean return of ``controller`` on the perfect state, one episode a seed.
 
     Each episode is :func:`~codesign_mb.rollout.rollout` with ideal control
     (``estimator=None``: the controller sees the plant's observation) behind a perfect link
     (``q = 1``, ``tau = 0``, which changes nothing the plant or the controller sees).
     """
-    if not episodes:
+    if not seeds:
         return {}
     env = LinkObservationWrapper(make_plant(plant), BernoulliLink(), StaticQos(1.0, 0))
     successes, returns = [], []
-    for s in stage_seeds(seed, episodes):
+    for s in seeds:
         table = rollout(env, None, controller, seed=s)
         successes.append("success" in table and bool(table["success"].any()))
         total = 0.0
@@ -200,7 +203,8 @@ _NOTES = (
     "SB3 SAC on the perfect state (no HER): plant reward + potential-based distance "
     "shaping + early-grip penalty; actor initialised by behaviour cloning of the "
     "demonstrations, critic pre-trained with SB3 SAC updates (actor frozen), then SAC; "
-    "the shipped model is the best evaluation (see 'best' and curve.json). "
+    "the shipped model is the best evaluation, on the dev seed set (see 'best' and "
+    "curve.json). "
     "wall_time_s counts the SAC chunks; setup_wall_time_s the rest."
 )
 
@@ -241,8 +245,7 @@ def train_stage_a(
     final = evaluate_ideal(
         config.plant,
         SacController(model),
-        episodes=config.final_eval_episodes,
-        seed=config.seed + 3,
+        seeds=stage_seeds(config.seed + 3, config.final_eval_episodes),
     )
     state.extra["session_wall_time_s"] = round(time.perf_counter() - started, 1)
     write_output(
@@ -269,8 +272,9 @@ def _shaped(config: StageAConfig, env: gym.Env) -> gym.Env:
 
 
 def _evaluate(config: StageAConfig, model: Any) -> dict[str, float]:
+    """The evaluation ``keep_best`` selects on: the ``dev`` seeds (:func:`selection_seeds`)."""
     return evaluate_ideal(
-        config.plant, SacController(model), episodes=config.eval_episodes, seed=config.seed + 2
+        config.plant, SacController(model), seeds=selection_seeds(config.eval_episodes)
     )
 
 

@@ -39,6 +39,8 @@ from codesign_mb.stages.training import (
     no_progress,
     require_at_least,
     resume_sac,
+    selection_seeds,
+    stage_seeds,
     train_sac_in_chunks,
     write_output,
 )
@@ -70,7 +72,8 @@ class StageCConfig:
     total_steps, chunk_steps:
         Agent steps (= env steps = packets) and steps between checkpoints.
     eval_episodes:
-        Deterministic evaluation episodes after each chunk.
+        Deterministic evaluation episodes after each chunk, on the ``dev`` seed set (the
+        same episodes whatever ``seed``; :func:`~codesign_mb.stages.training.selection_seeds`).
     warm_start:
         A saved QoS policy folder to continue from (stage D), or ``None``.
     warm_start_lambda:
@@ -177,7 +180,7 @@ def train_stage_c(
     else:
         state.extra["shipped"] = {"steps": state.steps_done, "lambda": callback.lam}
     final = evaluate_qos_agent(
-        eval_env, model, episodes=max(config.eval_episodes, 1), seed=config.seed + 3
+        eval_env, model, seeds=stage_seeds(config.seed + 3, max(config.eval_episodes, 1))
     )
     state.extra["session_wall_time_s"] = round(time.perf_counter() - started, 1)
     _write(config, model, env, state, final, out_dir=Path(out_dir), command=command)
@@ -242,7 +245,7 @@ def _learn(
 
     def evaluate(m: Any) -> dict[str, float]:
         eval_env.set_lambda(callback.lam)
-        return evaluate_qos_agent(eval_env, m, episodes=config.eval_episodes, seed=config.seed + 2)
+        return evaluate_qos_agent(eval_env, m, seeds=selection_seeds(config.eval_episodes))
 
     train_sac_in_chunks(
         model,
@@ -274,8 +277,8 @@ def _write(
     if config.keep_best and config.eval_episodes:
         shipped = (
             f"; shipped: the evaluated policy of step {state.extra['shipped']['steps']} "
-            f"(lowest reliability at >= {config.target_success:.0%} evaluation success, "
-            "else the most successful; see curve.json)"
+            f"(lowest reliability at >= {config.target_success:.0%} evaluation success on "
+            "the dev seed set, else the most successful; see curve.json)"
         )
     else:
         shipped = "; shipped: the last iterate"

@@ -31,6 +31,7 @@ import numpy as np
 
 from codesign_mb.core.config import to_mapping
 from codesign_mb.core.results import atomic_write, package_version, to_jsonable
+from codesign_mb.core.seeds import episode_seeds, seed_set
 from codesign_mb.stages.paths import portable_paths
 
 __all__ = [
@@ -43,6 +44,7 @@ __all__ = [
     "require_at_least",
     "resume_sac",
     "seeded_torch",
+    "selection_seeds",
     "stage_seeds",
     "train_sac_in_chunks",
     "write_json",
@@ -72,12 +74,20 @@ def require_at_least(config: Any, minimum: float, *names: str, prefix: str = "")
 
 
 def stage_seeds(seed: int, n: int) -> list[int]:
-    """The episode seeds of a stage's collection or evaluation: ``SeedSequence(seed)``'s state.
+    """The episode seeds of a stage's collection or final evaluation: ``SeedSequence(seed)``'s
+    state.
 
     The stages' own scheme (the shipped checkpoints were trained with it), distinct from the
     evaluation protocol's :func:`~codesign_mb.core.seeds.episode_seeds`.
     """
     return [int(s) for s in np.random.SeedSequence(seed).generate_state(max(n, 1))[:n]]
+
+
+def selection_seeds(n: int) -> list[int]:
+    """The episodes a stage selects its shipped model on (``keep_best``): the first ``n`` of
+    the ``dev`` seed set, whatever the stage and its seed (DESIGN.md, evaluation protocol:
+    what is selected is chosen on ``dev``, what is reported comes from ``test``)."""
+    return episode_seeds(seed_set("dev"), n) if n else []
 
 
 @dataclass(frozen=True)

@@ -63,7 +63,12 @@ from codesign_mb.plants.conveyor import ConveyorConfig
 from codesign_mb.plants.scenarios import SCENARIOS as CONVEYOR_SCENARIOS
 from codesign_mb.plants.scenarios import scenario_options
 from codesign_mb.studies.fig_wifi import CHANNEL_PRESETS, CapacityConfig, PipelineConfig, run_point
-from codesign_mb.studies.table_rows import all_rows, model_based_rows, model_free_rows
+from codesign_mb.studies.table_rows import (
+    all_rows,
+    model_based_rows,
+    model_free_rows,
+    row_for_plant,
+)
 from codesign_mb.wifi.config import SCHEDULERS
 
 __all__ = [
@@ -95,7 +100,9 @@ PIPELINE_KINDS: dict[str, tuple[str, str, str]] = {
     "mpc-mlp-rule": ("mpc", "mlp", "rule"),
 }
 """Sweep pipeline name -> ``(controller, estimator, qos)`` kinds of its table row.
-``model-based-rule`` is the covariance rule at ``table_rows.MPC_RULE_THRESHOLD_M``;
+The covariance rule's threshold is the one tuned for the sweep's conveyor scenario at its own
+belt speed (:func:`~codesign_mb.studies.table_rows.row_for_plant`, the default when it has
+none), held fixed across the grid: a grid point is the same design on another plant.
 ``model-free-codesign`` is SAC (stage A) + MLP + the learned QoS policy (stage D)."""
 
 
@@ -220,8 +227,12 @@ def plant_options(scenario: str, params: Params, belt_speed_mps: float) -> dict[
     a belt speed range (``realistic``) the grid's belt speed is the nominal one, what the robot
     assumes; the episode's speed is drawn from the range.
     """
-    preset = scenario if scenario in CONVEYOR_SCENARIOS else "paper"
-    return {**scenario_options(preset), **params.plant_options_at(belt_speed_mps)}
+    return {**scenario_options(_preset(scenario)), **params.plant_options_at(belt_speed_mps)}
+
+
+def _preset(scenario: str) -> str:
+    """The conveyor scenario of a sweep scenario name (``"conveyor"`` is ``"paper"``)."""
+    return scenario if scenario in CONVEYOR_SCENARIOS else "paper"
 
 
 def channel_share(params: Params, n_robots: int) -> float:
@@ -289,7 +300,12 @@ def run_trial(config: Any, seed: int) -> dict[str, float | int]:
     """
 
     params: Params = config.params if config.params is not None else Params()
-    row = pipeline_row(config.pipeline)
+    preset = _preset(config.scenario)
+    row = row_for_plant(
+        pipeline_row(config.pipeline),
+        PlantSpec("conveyor", scenario_options(preset)),
+        scenario=preset,
+    )
     components = _factories(config.pipeline, row)
     plant = PlantSpec("conveyor", plant_options(config.scenario, params, config.belt_speed_mps))
     cpu, wall = time.process_time(), time.perf_counter()

@@ -18,7 +18,7 @@ reliability on the same plant. The ``random`` rows run in a second pool, after t
 Columns of the summary (one row per table row and plant):
 
 ``row``, ``plant``, ``scenario``
-    The row's name, the plant's label and the scenario (for now the plant's label).
+    The row's name, the plant's label and its scenario (the label if it is not one).
 ``kind``, ``reference``, ``reference_of``
     ``"row"`` for the table's own rows, else the reference kind (``blind``, ``oracle``,
     ``static``, ``random``) with ``reference`` true; ``reference_of``: the row whose
@@ -33,8 +33,13 @@ Columns of the summary (one row per table row and plant):
     was trained from (a stage-D estimator continues stage B's under stage C's policy; a stage-D
     QoS policy is warm-started from stage C; a stage-B estimator is trained on the stage-A
     controller's episodes), each file counted once. Model-based components (MPC, predictor,
-    the covariance rule) count 0: the rule's threshold was tuned by bisection offline and that
-    cost is not recorded.
+    the covariance rule) count 0: the rule's threshold is tuned by ``codesign tune`` on the
+    ``dev`` seeds and that cost is in the tuned file, not counted here.
+``qos_options``, ``rule_threshold_m``, ``rule_threshold_source``
+    The QoS policy's options as run on this plant; the covariance rule's threshold, resolved
+    per plant (:func:`~codesign_mb.studies.table_rows.row_for_plant`: tuned on ``dev`` for
+    the plant's scenario, else the default) and where it came from. ``table.json`` records
+    every row as run on each plant (``extra.rows``).
 ``controller_cpu_ms``, ``estimator_cpu_ms``, ``qos_cpu_ms``, ``cpu_ms_per_step``
     CPU time (``time.process_time``, ms) per control step of ``act``, ``estimate`` and
     ``request`` (the QoS policy runs at the edge), and their sum.
@@ -70,6 +75,7 @@ summary, its Markdown, the Pareto plot and Fig. 5) are written by
 
 from __future__ import annotations
 
+import dataclasses
 import warnings
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
@@ -109,6 +115,7 @@ from codesign_mb.studies.table_rows import (
     PLANT_PRESETS,
     TablePlant,
     TableRow,
+    row_for_plant,
 )
 
 __all__ = [
@@ -250,7 +257,7 @@ def _plant(value: Any, index: int) -> TablePlant:
 
 def _scenario_plant(name: str) -> TablePlant:
     """The conveyor of scenario ``name``, labelled by the name."""
-    return TablePlant(name, "conveyor", scenario_options(name))
+    return TablePlant(name, "conveyor", scenario_options(name), scenario=name)
 
 
 # -- the Pareto front, the best row, the run ---------------------------------------------------
@@ -343,9 +350,14 @@ def run_table(
         for name, paths in missing.items()
     }
     why.update(_incompatible_cells(listed, plants, missing))
-    cells = [(p, r.row) for p in plants for r in listed if (p.label, r.row.name) not in why]
+    per_plant = {  # the rows as they run on each plant (the rule's tuned threshold)
+        p.label: [dataclasses.replace(r, row=row_for_plant(r.row, p)) for r in listed]
+        for p in plants
+    }
+    cells = [
+        (p, r.row) for p in plants for r in per_plant[p.label] if (p.label, r.row.name) not in why
+    ]
     tables = _run_cells(cells, config, progress, "table episodes")
-    per_plant = {p.label: list(listed) for p in plants}
     if config.with_references():
         randoms = _random_references(rows, plants, tables, per_plant, why)
         tables.update(_run_cells(randoms, config, progress, "random reference episodes"))

@@ -165,9 +165,9 @@ def training_cost(row: RowLike) -> TrainingCost:
     ``estimator``, ``warm_start``, ``qos_policy``), recursively; every file is counted once.
     The estimator of a stage-D folder counts the folder's ``estimator`` section only (its QoS
     policy has its own ``qos/training.json``). Model-based components count 0; the covariance
-    rule's threshold was tuned by bisection offline, which is not recorded and counts 0 (named
-    in ``sources``). Checkpoints without a ``training.json`` are listed in ``unknown`` (the
-    sums are then lower bounds).
+    rule's threshold is tuned by ``codesign tune`` on the ``dev`` seeds (its episodes are in
+    the tuned file, ``env_steps``) and counts 0 here (named in ``sources``). Checkpoints
+    without a ``training.json`` are listed in ``unknown`` (the sums are then lower bounds).
     """
     todo = [(role, spec.checkpoint) for role, spec in _specs(row) if spec.checkpoint]
     seen: dict[tuple[str, str], tuple[int, float, str]] = {}
@@ -209,7 +209,7 @@ def training_cost(row: RowLike) -> TrainingCost:
                 todo.append(("qos", ref))
     sources = [label for _, _, label in seen.values()]
     if any(spec.kind == "rule" for _, spec in _specs(row)):
-        sources.append("rule threshold (bisection offline, not counted)")
+        sources.append("rule threshold (codesign tune on dev, not counted)")
     return TrainingCost(
         env_steps=sum(s for s, _, _ in seen.values()),
         wall_time_s=float(sum(w for _, w, _ in seen.values())),

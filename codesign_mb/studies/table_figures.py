@@ -9,6 +9,7 @@ table`` draws them from :func:`~codesign_mb.studies.table.run_table`'s summary a
 
 from __future__ import annotations
 
+import contextlib
 import math
 import time
 from collections.abc import Callable, Sequence
@@ -19,19 +20,29 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from codesign_mb.core.results import atomic_write, write_results
+from codesign_mb.core.registry import resolve_checkpoint
+from codesign_mb.core.results import atomic_write, to_jsonable, write_results
 from codesign_mb.evaluation.phase_metrics import SUMMARY_COLUMNS as PHASE_COLUMNS
 from codesign_mb.studies.figures import new_figure, save_png
 from codesign_mb.studies.table import TableConfig, qos_timeline, run_table, timeline_row_name
-from codesign_mb.studies.table_refs import ROW_KIND, draw_references, reference_legend
+from codesign_mb.studies.table_refs import (
+    ROW_KIND,
+    draw_references,
+    fixed_references,
+    reference_legend,
+)
+from codesign_mb.studies.table_rows import row_for_plant
+from codesign_mb.studies.tuned import tuned_file
 
 __all__ = [
     "SUMMARY_COLUMNS",
     "TableOutputs",
+    "expanded_rows",
     "markdown_table",
     "plot_pareto",
     "plot_timeline",
     "run_table_study",
+    "table_inputs",
     "write_table_outputs",
 ]
 
@@ -55,6 +66,7 @@ SUMMARY_COLUMNS: tuple[str, ...] = (
     "paper_success_rate",
     "paper_mean_reliability",
     "mpc_failures",
+    "rule_threshold_m",
     *PHASE_COLUMNS,
 )
 """The summary columns ``codesign table --json`` prints (with the estimation error and NEES per
@@ -374,17 +386,22 @@ def write_table_outputs(
     :func:`~codesign_mb.studies.table.timeline_row_name` has a successful episode on the
     first plant, ``fig_lat.*`` (its per-step record, re-run from its seed) and
     ``fig_lat.png`` (:func:`plot_timeline`). ``extra`` goes into every table's metadata,
-    with the plants.
+    with the plants and the rows as run on each (:func:`expanded_rows`); the provenance
+    holds the SHA-256 of every file the rows read (:func:`table_inputs`).
     """
     out = Path(out_dir)
-    plants = {p.label: {"name": p.name, "options": p.options} for p in config.table_plants()}
-    extra = {**(extra or {}), "plants": plants}
+    plants = {
+        p.label: {"name": p.name, "options": p.options, "scenario": p.scenario}
+        for p in config.table_plants()
+    }
+    extra = {**(extra or {}), "plants": plants, "rows": expanded_rows(config)}
     files: dict[str, Path] = {}
-    files["tab_p"] = write_results(out, table=summary, config=config, name="tab_p", extra=extra)[
-        "parquet"
-    ]
+    inputs = table_inputs(config)
+    files["tab_p"] = write_results(
+        out, table=summary, config=config, name="tab_p", extra=extra, checkpoints=inputs
+    )["parquet"]
     files["tab_p_episodes"] = write_results(
-        out, table=episodes, config=config, name="tab_p_episodes", extra=extra
+        out, table=episodes, config=config, name="tab_p_episodes", extra=extra, checkpoints=inputs
     )["parquet"]
     with atomic_write(out / "tab_p.md", "w") as fh:
         fh.write(markdown_table(summary))
@@ -407,7 +424,7 @@ def _write_timeline(
     """Fig. 5's table and PNG into ``out`` (added to ``files``), or why it was not drawn."""
     first = config.table_plants()[0]
     name = timeline_row_name(config, summary)
-    row = next((r for r in config.table_rows() if r.name == name), None)
+    row = next((row_for_plant(r, first) for r in config.table_rows() if r.name == name), None)
     found = None if row is None else qos_timeline(first, row, episodes)
     if row is None or found is None:
         status = summary.loc[(summary["row"] == name) & (summary["plant"] == first.label), "status"]
@@ -429,6 +446,36 @@ def _write_timeline(
         [(f"{row.name}, {first.label}", steps)], out / "fig_lat.png"
     )
     return None
+
+
+def expanded_rows(config: TableConfig) -> dict[str, list[dict[str, Any]]]:
+    """Plant label -> the table's rows and fixed references as they run on it.
+
+    Every component's kind, checkpoint and options, the covariance rule's threshold resolved
+    for the plant with its source (:func:`~codesign_mb.studies.table_rows.row_for_plant`);
+    the ``random`` references' probabilities are in the summary's ``qos_options``.
+    """
+    rows = list(config.table_rows())
+    if config.with_references():
+        rows += [ref.row for ref in fixed_references(config.table_rows())]
+    return {
+        plant.label: [to_jsonable(row_for_plant(row, plant)) for row in rows]
+        for plant in config.table_plants()
+    }
+
+
+def table_inputs(config: TableConfig) -> dict[str, Path]:
+    """The shipped files the table's rows read, by name: each checkpoint found (a missing one
+    is in the summary's ``status``) and the tuned thresholds' file when it exists."""
+    found: dict[str, Path] = {}
+    for row in config.table_rows():
+        for spec in (row.controller, row.estimator, row.qos):
+            if spec.checkpoint and spec.checkpoint not in found:
+                with contextlib.suppress(ValueError):
+                    found[spec.checkpoint] = resolve_checkpoint(spec.checkpoint)
+    if tuned_file().is_file():
+        found["tuned/rule_threshold.json"] = tuned_file()
+    return found
 
 
 def run_table_study(

@@ -1,24 +1,30 @@
 """The summary records of a table: one per (plant, row), from its episodes or why it has none.
 
 Columns: :mod:`codesign_mb.studies.table` (the module docstring); the labels ``row``,
-``plant``, ``scenario`` (the plant's label, until named scenarios exist), ``kind`` (``"row"``
+``plant``, ``scenario`` (the plant's scenario name, else its label), ``kind`` (``"row"``
 or a reference kind of :mod:`codesign_mb.studies.table_refs`), ``reference``,
 ``reference_of`` (the row a ``random`` reference matches), ``pipeline``, ``controller``,
-``estimator``, ``qos`` and ``status``.
+``estimator``, ``qos``, ``qos_options`` (the QoS policy's options as run, JSON),
+``rule_threshold_m`` and ``rule_threshold_source`` (the covariance rule's threshold on this
+plant and where it came from, :func:`~codesign_mb.studies.table_rows.row_for_plant`; NaN
+and ``""`` without a rule) and ``status``.
 """
 
 from __future__ import annotations
 
+import json
 import math
 from typing import Any
 
 import pandas as pd
 
+from codesign_mb.core.results import to_jsonable
 from codesign_mb.evaluation.evaluate import summarize
 from codesign_mb.evaluation.phase_metrics import SUMMARY_COLUMNS as PHASE_COLUMNS
 from codesign_mb.studies.table_cost import CPU_COLUMNS, TrainingCost
 from codesign_mb.studies.table_refs import ROW_KIND, Reference
 from codesign_mb.studies.table_rows import TablePlant, TableRow, stack_of
+from codesign_mb.studies.tuned import rule_defaults
 
 __all__ = ["missing_record", "record"]
 
@@ -28,7 +34,7 @@ def _labels(plant: TablePlant, ref: Reference) -> dict[str, Any]:
     return {
         "row": row.name,
         "plant": plant.label,
-        "scenario": plant.label,
+        "scenario": plant.scenario or plant.label,
         "kind": ref.kind,
         "reference": ref.kind != ROW_KIND,
         "reference_of": ref.of,
@@ -36,8 +42,21 @@ def _labels(plant: TablePlant, ref: Reference) -> dict[str, Any]:
         "controller": row.controller.kind,
         "estimator": row.estimator.kind,
         "qos": row.qos.kind,
+        "qos_options": json.dumps(to_jsonable(row.qos.options), sort_keys=True),
+        **_threshold(row),
         "status": "ok",
     }
+
+
+def _threshold(row: TableRow) -> dict[str, Any]:
+    """``rule_threshold_m`` and ``rule_threshold_source`` of a row (NaN and ``""``: no rule)."""
+    if row.qos.kind != "rule":
+        return {"rule_threshold_m": math.nan, "rule_threshold_source": ""}
+    if "threshold_m" not in row.qos.options:
+        value, source = rule_defaults()["threshold_m"], "the rule's default"
+    else:
+        value, source = row.qos.options["threshold_m"], row.threshold_source or "given in the row"
+    return {"rule_threshold_m": float(value), "rule_threshold_source": source}
 
 
 def _paper(row: TableRow) -> dict[str, Any]:

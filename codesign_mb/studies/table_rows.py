@@ -3,13 +3,21 @@
 :func:`model_free_rows` are the paper's Table I rows, :func:`model_based_rows` their
 model-based counterparts (MPC, the delay-compensating predictor, the covariance rule) and
 :func:`all_rows` the head-to-head grid; :data:`PIPELINES` names them. :data:`PLANT_PRESETS`
-are the conveyor plants of the tables (both belt speeds of the paper and the variable belt),
+are the conveyor plants of the tables (both belt speeds of the paper and the variable belt:
+scenarios of :data:`~codesign_mb.plants.scenarios.SCENARIOS` under their short names),
 :data:`PIPELINE_PLANTS` each pipeline's default ones. The run is
 :func:`codesign_mb.studies.table.run_table`.
+
+The covariance rule of these rows has ``threshold_m = "tuned"``
+(:data:`~codesign_mb.studies.tuned.TUNED`): its threshold depends on the plant and is
+resolved when a row meets one (:func:`row_for_plant`): the threshold ``codesign tune`` chose
+for that plant on the ``dev`` seeds (:mod:`codesign_mb.studies.tuned`), else
+:data:`~codesign_mb.studies.tuned.RULE_THRESHOLD_DEFAULT_M`. A row given with a number keeps it.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
@@ -17,17 +25,21 @@ from typing import Any
 from codesign_mb.core.config import from_mapping
 from codesign_mb.core.registry import ComponentSpec, PlantSpec
 from codesign_mb.plants.conveyor import ConveyorConfig
+from codesign_mb.plants.scenarios import get_scenario, scenario_options
+from codesign_mb.studies.tuned import TUNED, rule_threshold
 
 __all__ = [
-    "MPC_RULE_THRESHOLD_M",
+    "CODESIGN_RULE_ROW",
     "PIPELINES",
     "PIPELINE_PLANTS",
     "PLANT_PRESETS",
     "TablePlant",
     "TableRow",
     "all_rows",
+    "codesign_rule_row",
     "model_based_rows",
     "model_free_rows",
+    "row_for_plant",
     "stack_of",
 ]
 
@@ -42,6 +54,9 @@ class TableRow:
     qos: ComponentSpec
     paper_success_rate: float | None = None
     paper_mean_reliability: float | None = None
+    threshold_source: str = ""
+    """Where the rule's ``threshold_m`` came from, set by :func:`row_for_plant` (``""``: not
+    resolved, or no rule)."""
 
     def __post_init__(self) -> None:
         for role in ("controller", "estimator", "qos"):
@@ -62,15 +77,29 @@ class TablePlant:
         Shown in the ``plant`` column and the figures, e.g. ``"0.2 m/s"``.
     name, options:
         The :class:`~codesign_mb.core.registry.PlantSpec`.
+    scenario:
+        The conveyor scenario this plant is (``""``: none named); with no ``options``, the
+        scenario's, else they must give the scenario's config.
     """
 
     label: str
     name: str = "conveyor"
     options: dict[str, Any] = field(default_factory=dict)
+    scenario: str = ""
 
     def __post_init__(self) -> None:
         if not isinstance(self.label, str) or not self.label:
             raise ValueError(f"plant label must be a non-empty string, got {self.label!r}")
+        if self.scenario:
+            preset = get_scenario(self.scenario)  # an unknown name names the choices
+            if self.name != "conveyor":
+                raise ValueError(f"scenario {self.scenario!r} is a conveyor, not {self.name!r}")
+            if not self.options:
+                object.__setattr__(self, "options", dict(preset.options))
+            elif preset.config() != from_mapping(ConveyorConfig, self.options):
+                raise ValueError(
+                    f"plant {self.label!r}: options are not those of scenario {self.scenario!r}"
+                )
         self.spec  # validates name and options  # noqa: B018
 
     @property
@@ -91,14 +120,16 @@ class TablePlant:
 
 
 PLANT_PRESETS: dict[str, TablePlant] = {
-    "0.2": TablePlant("0.2 m/s", options={"belt_speed_mps": 0.2}),
-    "0.6": TablePlant("0.6 m/s", options={"belt_speed_mps": 0.6}),
-    "variable": TablePlant(
-        "variable (0.6 m/s)", options={"belt_speed_mps": 0.6, "belt_profile": "variable"}
-    ),
+    name: TablePlant(label, options=scenario_options(scenario), scenario=scenario)
+    for name, label, scenario in (
+        ("0.2", "0.2 m/s", "constant-0.2"),
+        ("0.6", "0.6 m/s", "constant-0.6"),
+        ("variable", "variable (0.6 m/s)", "variable"),
+    )
 }
-"""The conveyor plants of the tables, by the name ``--plant`` and ``plants`` take: both belt
-speeds of the paper and the variable belt (seeded speed steps and stops around 0.6 m/s)."""
+"""The conveyor plants of the tables, by the short name ``--plant`` and ``plants`` take: the
+scenarios ``constant-0.2`` and ``constant-0.6`` (both belt speeds of the paper) and
+``variable`` (seeded speed steps and stops around 0.6 m/s), labelled as before."""
 
 
 # -- rows -------------------------------------------------------------------------------------
@@ -108,9 +139,8 @@ _MPC = ComponentSpec("mpc")
 _PREDICTOR = ComponentSpec("predictor")
 _STATIC = ComponentSpec("static", options={"reliability": 1.0, "latency_steps": 1})
 
-MPC_RULE_THRESHOLD_M = 0.08
-"""Trigger of the model-based co-design rule: tuned by bisection for >= 98 % success at
-0.2 m/s (`tune_threshold`; see the note in README.md)."""
+CODESIGN_RULE_ROW = "MPC + predictor, rule QoS (co-design)"
+"""The model-based co-design row, whose threshold ``codesign tune`` tunes."""
 
 
 RULE_INNOVATION_GATE = 0.99
@@ -118,8 +148,34 @@ RULE_INNOVATION_GATE = 0.99
 
 
 def _rule() -> ComponentSpec:
-    options = {"threshold_m": MPC_RULE_THRESHOLD_M, "low": 0.0}
+    """The covariance rule with the plant's tuned threshold (:func:`row_for_plant`)."""
+    options = {"threshold_m": TUNED, "low": 0.0}
     return ComponentSpec("rule", options={**options, "innovation_gate": RULE_INNOVATION_GATE})
+
+
+def codesign_rule_row() -> TableRow:
+    """The model-based co-design row: MPC + predictor + the covariance rule."""
+    return next(r for r in model_based_rows() if r.name == CODESIGN_RULE_ROW)
+
+
+def row_for_plant(row: TableRow, plant: TablePlant | PlantSpec, *, scenario: str = "") -> TableRow:
+    """``row`` as it runs on ``plant``: a rule's ``threshold_m = "tuned"`` made a number.
+
+    The number is :func:`~codesign_mb.studies.tuned.rule_threshold` of the plant (its tuned
+    threshold, else the default), recorded with its source in ``threshold_source``; other
+    rows are returned as they are. ``scenario``: the plant's scenario name when ``plant`` is
+    a bare spec (a :class:`TablePlant` carries its own).
+    """
+    if row.qos.kind != "rule" or row.qos.options.get("threshold_m") != TUNED:
+        return row
+    spec = plant.spec if isinstance(plant, TablePlant) else plant
+    if isinstance(plant, TablePlant):
+        scenario = plant.scenario
+    choice = rule_threshold(spec, row.qos.options, scenario=scenario)
+    qos = dataclasses.replace(
+        row.qos, options={**row.qos.options, "threshold_m": choice.threshold_m}
+    )
+    return dataclasses.replace(row, qos=qos, threshold_source=choice.source)
 
 
 def model_free_rows() -> tuple[TableRow, ...]:
@@ -150,7 +206,7 @@ def model_based_rows() -> tuple[TableRow, ...]:
     return (
         TableRow("MPC + predictor, static QoS", _MPC, _PREDICTOR, _STATIC),
         TableRow("MPC, no estimator, rule QoS", _MPC, ComponentSpec("none"), _rule()),
-        TableRow("MPC + predictor, rule QoS (co-design)", _MPC, _PREDICTOR, _rule()),
+        TableRow(CODESIGN_RULE_ROW, _MPC, _PREDICTOR, _rule()),
     )
 
 
