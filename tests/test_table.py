@@ -127,9 +127,9 @@ def test_best_row_prefers_least_network_above_the_bar_else_most_success() -> Non
 # -- config ------------------------------------------------------------------------------------
 def test_pipelines_have_their_default_plants() -> None:
     assert [p.label for p in TableConfig().table_plants()] == ["0.2 m/s"]
-    assert [p.label for p in TableConfig(pipeline="model-based").table_plants()] == ["0.2 m/s"]
+    assert [p.label for p in TableConfig(pipeline="model-based").table_plants()] == ["realistic"]
     plants = TableConfig(pipeline="all").table_plants()
-    assert [p.scenario for p in plants] == ["constant-0.2", "constant-0.6", "variable"]
+    assert [p.scenario for p in plants] == ["realistic", "constant-0.2", "constant-0.6", "variable"]
     assert [p.options for p in plants] == [  # the scenarios' own options, not a copy of them
         SCENARIOS[p.scenario].options for p in plants
     ]

@@ -87,8 +87,9 @@ def table_command(
         typer.Option(
             "--scenario",
             help=f"{SCENARIO_HELP} Evaluates on that scenario's conveyor only (instead of "
-            "--plant). \\[default: the pipeline's plants, on the paper scenario's conveyor, on "
-            "which README's numbers were measured]",
+            "--plant). \\[default: the pipeline's plants: realistic (model-based), 0.2 "
+            "(model-free: the plant its checkpoints were trained on), realistic, 0.2, 0.6 and "
+            "variable (all)]",
             show_default=False,
         ),
     ] = None,

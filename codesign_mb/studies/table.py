@@ -62,8 +62,9 @@ Columns of the summary (one row per table row and plant):
 
 :data:`~codesign_mb.studies.table_rows.PIPELINES` maps a pipeline name to its default rows and
 :data:`~codesign_mb.studies.table_rows.PIPELINE_PLANTS` to its default plants (``model-free``:
-the paper's Table I, at 0.2 m/s only; ``all``: the head-to-head rows at both belt speeds and on
-the variable belt). Rows and plants can be given in a config file (``[[rows]]``, ``plants``).
+the paper's Table I, at 0.2 m/s only; ``model-based``: the ``realistic`` scenario; ``all``: the
+head-to-head rows on ``realistic``, at both belt speeds and on the variable belt). Rows and
+plants can be given in a config file (``[[rows]]``, ``plants``).
 
 Fig. 5 is the requested reliability along one successful episode, on the first plant, of the
 co-design row of the ``model-free`` or ``model-based`` pipeline (as in the paper), or of the
@@ -145,7 +146,7 @@ class TableConfig:
         One plant instead of ``plants`` (labelled from its options; kept for older configs).
     scenario:
         One conveyor scenario instead of ``plants`` (``codesign table --scenario NAME``);
-        ``""``: the pipeline's plants (on the ``paper`` scenario's conveyor).
+        ``""``: the pipeline's plants.
     rows:
         The rows; empty means the default rows of ``pipeline``.
     pipeline:
@@ -235,7 +236,7 @@ class TableConfig:
             return (_scenario_plant(self.scenario),)
         if self.plants:
             return self.plants  # type: ignore[return-value]  # normalised in __post_init__
-        return tuple(PLANT_PRESETS[k] for k in PIPELINE_PLANTS[self.pipeline])
+        return tuple(_plant(k, i) for i, k in enumerate(PIPELINE_PLANTS[self.pipeline]))
 
 
 def _plant(value: Any, index: int) -> TablePlant:
