@@ -238,3 +238,41 @@ def test_markers_must_be_there_once() -> None:
         read_block("no markers")
     with pytest.raises(ValueError, match="markers"):
         read_block(f"{END}\n{BEGIN}\n")
+
+
+def test_explain_table_renders_reasons_errors_and_nees() -> None:
+    from codesign_mb.studies.readme_tables import explain_table
+
+    row = {
+        "row": "MPC + predictor, rule QoS (co-design)",
+        "status": "ok",
+        "rule_threshold_m": 0.0139,
+        "failures_dropped": 1,
+        "failures_missed_grasp": 3,
+        "failures_off_belt": 0,
+        "failures_timeout": None,
+        "mean_time_to_grasp_s": 2.345,
+        "est_error_mm_belt": 28.04,
+        "est_error_mm_grasp": 6.66,
+        "est_error_mm_carried": 11.4,
+        **{f"nees_{p}": v for p, v in zip(("belt", "grasp", "carried"), (4.36, 4.44, 12.5))},
+        **{f"nees_{p}_low": 2.9 for p in ("belt", "grasp", "carried")},
+        **{f"nees_{p}_high": 3.1 for p in ("belt", "grasp", "carried")},
+    }
+    skipped = {"row": "SAC + MLP", "status": "incompatible checkpoint: x"}
+    none = {
+        **row,
+        "row": "*blind*",
+        "rule_threshold_m": None,
+        "nees_belt": None,
+        "nees_grasp": None,
+        "nees_carried": None,
+    }
+    lines = explain_table([row, skipped, none]).splitlines()
+    assert "| failures (dropped / missed grasp / off belt / timeout) |" in lines[2]
+    assert lines[4] == (
+        "| MPC + predictor, rule QoS (co-design) | 0.0139 m | 1 / 3 / 0 / 0 | 2.35 s | "
+        "28.0 / 6.7 / 11.4 | 4.4 [2.90, 3.10] / 4.4 [2.90, 3.10] / 12.5 [2.90, 3.10] |"
+    )
+    assert lines[5].startswith("| *blind* |  | 1 / 3 / 0 / 0 |") and lines[5].endswith("|  |")
+    assert len(lines) == 6  # the skipped row has no metrics

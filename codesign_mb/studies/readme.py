@@ -29,6 +29,8 @@ from typing import Any
 import pandas as pd
 
 from codesign_mb.core.results import ResultsDir, atomic_write, to_jsonable
+from codesign_mb.plants.outcomes import FAILURE_REASONS
+from codesign_mb.plants.phases import PHASES
 from codesign_mb.studies.paper import MANIFEST, STUDIES, TABLE_STUDIES, read_study
 from codesign_mb.studies.readme_tables import SECTIONS, header, wall_times
 
@@ -73,6 +75,11 @@ _TABLE_COLUMNS = (
     "paper_success_rate",
     "paper_mean_reliability",
     "pareto",
+    "rule_threshold_m",
+    "mean_time_to_grasp_s",
+    *(f"failures_{reason}" for reason in FAILURE_REASONS),
+    *(f"est_error_mm_{phase}" for phase in PHASES),
+    *(f"nees_{phase}{end}" for phase in PHASES for end in ("", "_low", "_high")),
 )
 _FIG_CN_COLUMNS = (
     "sweep",

@@ -9,8 +9,12 @@ in percent with one decimal, none at 0 and 100 (``[96.3, 100]``, ``[61.5, 79.0]`
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any
+
+from codesign_mb.plants.outcomes import FAILURE_REASONS
+from codesign_mb.plants.phases import PHASES
 
 __all__ = ["SECTIONS", "ci", "header", "markdown_table", "pct", "wall_times"]
 
@@ -46,7 +50,7 @@ def _count(n: int, noun: str, plural: str = "s") -> str:
 
 
 def _number(value: float | None, digits: int = 2) -> str:
-    return "" if value is None else f"{value:.{digits}f}"
+    return f"{value:.{digits}f}" if _finite(value) else ""
 
 
 def _g(value: Any) -> str:
@@ -212,7 +216,61 @@ def table_section(study: Study, figures_url: str) -> str:
         "in italics: blind (q = 0), oracle (q = 1, tau = 0), static (q = 1, tau = 1), random (each "
         "packet sent with the named row's average requested reliability):"
     )
-    return _paragraphs(title, markdown_table(head, lines), _figures(study, figures_url))
+    explain = explain_table(rows) if settings["pipeline"] == "model-based" else ""
+    return _paragraphs(title, markdown_table(head, lines), explain, _figures(study, figures_url))
+
+
+def explain_table(rows: Sequence[Mapping[str, Any]]) -> str:
+    """Why the rows fail and how well they know the object: the metrics that explain.
+
+    Per row that ran: the covariance rule's threshold, the failures by reason, the mean time
+    to grasp, the RMS error of the object position the controller acts on per phase, and the
+    predictor's average NEES per phase (3 for a consistent filter) against its 95 % band.
+    """
+    head = [
+        "row",
+        "rule threshold",
+        f"failures ({' / '.join(r.replace('_', ' ') for r in FAILURE_REASONS)})",
+        "time to grasp",
+        f"position error, mm ({' / '.join(PHASES)})",
+        f"NEES ({' / '.join(PHASES)}; 95 % band of a consistent filter)",
+    ]
+    lines = []
+    for r in rows:
+        if r.get("status", "ok") != "ok":
+            continue
+        threshold = r.get("rule_threshold_m")
+        nees = [r.get(f"nees_{p}") for p in PHASES]
+        bands = [(r.get(f"nees_{p}_low"), r.get(f"nees_{p}_high")) for p in PHASES]
+        nees_cell = ""
+        if any(_finite(v) for v in nees):
+            nees_cell = " / ".join(
+                f"{_number(v, 1)} [{_number(lo, 2)}, {_number(hi, 2)}]"
+                for v, (lo, hi) in zip(nees, bands, strict=True)
+            )
+        name = f"*{r['row']}*" if r.get("reference") else str(r["row"])
+        grasp = r.get("mean_time_to_grasp_s")
+        lines.append(
+            [
+                name,
+                f"{_number(threshold, 4)} m" if _finite(threshold) else "",
+                " / ".join(str(int(r.get(f"failures_{k}") or 0)) for k in FAILURE_REASONS),
+                f"{_number(grasp, 2)} s" if _finite(grasp) else "",
+                " / ".join(_number(r.get(f"est_error_mm_{p}"), 1) for p in PHASES),
+                nees_cell,
+            ]
+        )
+    intro = (
+        "What explains these figures (same episodes): failures by reason, mean time to grasp "
+        "(episodes that grasped), RMS error of the object position the controller acts on "
+        "per phase, and the predictor's average normalised estimation error squared per phase "
+        "(position, 3 degrees of freedom; the band assumes independent steps, so it is narrow):"
+    )
+    return _paragraphs(intro, markdown_table(head, lines))
+
+
+def _finite(value: Any) -> bool:
+    return isinstance(value, int | float) and math.isfinite(value)
 
 
 def fig_cn_section(study: Study, figures_url: str) -> str:

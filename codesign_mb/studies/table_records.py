@@ -21,6 +21,7 @@ import pandas as pd
 from codesign_mb.core.results import to_jsonable
 from codesign_mb.evaluation.evaluate import summarize
 from codesign_mb.evaluation.phase_metrics import SUMMARY_COLUMNS as PHASE_COLUMNS
+from codesign_mb.plants.outcomes import FAILURE_REASONS
 from codesign_mb.studies.table_cost import CPU_COLUMNS, TrainingCost
 from codesign_mb.studies.table_refs import ROW_KIND, Reference
 from codesign_mb.studies.table_rows import TablePlant, TableRow, stack_of
@@ -115,6 +116,8 @@ _SUMMARY = (
     "delivered_fraction",
     "mean_age",
     "mean_estimation_error",
+    "mean_time_to_grasp_s",
+    *(f"failures_{reason}" for reason in FAILURE_REASONS),
     *PHASE_COLUMNS,
 )
 _NUMBERS = (*_SUMMARY, *CPU_COLUMNS, "cpu_ms_per_step", "mpc_failures", "eval_wall_time_s")
