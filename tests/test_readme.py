@@ -49,6 +49,7 @@ def test_readme_results_block_is_the_rendering_of_docs_results() -> None:
 def test_percentages_and_intervals() -> None:
     assert pct(1.0) == "100 %" and pct(0.63) == "63 %" and pct(0.0) == "0 %"
     assert pct(0.004) == "0.4 %" and pct(0.0951) == "10 %" and pct(None) == ""
+    assert pct(0.995) == "99.5 %" and pct(0.9949) == "99 %" and pct(0.9999) == "100.0 %"
     assert ci(*wilson_interval(100, 100)) == "[96.3, 100]"
     assert ci(*wilson_interval(0, 100)) == "[0, 3.7]"
     assert ci(*wilson_interval(63, 100)) == "[53.2, 71.8]"

@@ -23,11 +23,15 @@ Study = Mapping[str, Any]
 
 # -- formatting ------------------------------------------------------------------------------------
 def pct(value: float | None) -> str:
-    """A rate in [0, 1] as a whole percentage (``0.63`` -> ``63 %``; ``0.004`` -> ``0.4 %``)."""
+    """A rate in [0, 1] as a whole percentage (``0.63`` -> ``63 %``; ``0.004`` -> ``0.4 %``).
+
+    One decimal where whole percent would round to 0 % or 100 % a rate that is neither
+    (``0.995`` -> ``99.5 %``: an oracle that failed once does not read as perfect).
+    """
     if value is None:
         return ""
     percent = 100.0 * float(value)
-    if 0.0 < abs(percent) < 0.95:
+    if 0.0 < abs(percent) < 0.95 or 99.5 <= percent < 100.0:
         return f"{percent:.1f} %"
     return f"{percent:.0f} %"
 
