@@ -58,6 +58,7 @@ __all__ = [
     "SCENARIO_HELP",
     "SCENARIO_NAMES",
     "ConfigOption",
+    "FreshOption",
     "JsonOption",
     "OutOption",
     "ScenarioOption",
@@ -119,6 +120,14 @@ ScenarioOption = Annotated[
         show_default=False,
     ),
 ]
+FreshOption = Annotated[
+    bool,
+    typer.Option(
+        "--fresh",
+        help="Recompute every episode instead of reusing those an earlier run kept in "
+        "OUT/.records (an interrupted run resumes from them).",
+    ),
+]
 OutOption = Annotated[
     Path,
     typer.Option("--out", "-o", help="Results folder (created if missing).", file_okay=False),
@@ -131,7 +140,8 @@ def cli_errors(func: Callable[P, R]) -> Callable[P, R]:
     ``ValueError`` and ``OSError`` (bad value, missing file) are printed as
     ``error: <message>`` on stderr and exit with code 2. Any other exception (``TypeError``
     included) is a bug: it is shown as ``error: unexpected <Type>: <message>`` with a pointer
-    to ``--debug`` and exits with code 1. Ctrl-C says so and exits with 130.
+    to ``--debug`` and exits with code 1. Ctrl-C says so, with what the run kept and how to
+    resume when the library says (a ``KeyboardInterrupt`` with a message), and exits with 130.
     ``typer.Exit``/``typer.Abort`` pass through. ``codesign --debug`` (or ``CODESIGN_DEBUG=1``)
     re-raises everything with its traceback.
 
@@ -145,10 +155,11 @@ def cli_errors(func: Callable[P, R]) -> Callable[P, R]:
             return func(*args, **kwargs)
         except (typer.Exit, typer.Abort, click.exceptions.ClickException):
             raise
-        except KeyboardInterrupt:
+        except KeyboardInterrupt as exc:
             if os.environ.get("CODESIGN_DEBUG"):
                 raise
-            typer.echo("interrupted", err=True)
+            kept = _one_line(exc) if exc.args else ""  # what was kept, how to resume
+            typer.echo(f"interrupted: {kept}" if kept else "interrupted", err=True)
             raise typer.Exit(code=INTERRUPTED_EXIT_CODE) from None
         except _USER_ERRORS as exc:
             if os.environ.get("CODESIGN_DEBUG"):

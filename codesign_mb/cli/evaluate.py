@@ -14,6 +14,7 @@ import typer
 
 from codesign_mb.cli.common import (
     ConfigOption,
+    FreshOption,
     JsonOption,
     OutOption,
     ScenarioOption,
@@ -66,6 +67,7 @@ def evaluate_command(
     ] = None,
     out: OutOption = Path("results/evaluate"),
     name: Annotated[str, typer.Option(help="Table name in the results folder.")] = "evaluate",
+    fresh: FreshOption = False,
     as_json: JsonOption = False,
 ) -> None:
     """Run seeded episodes in parallel; write OUT/NAME.parquet/.csv/.json and a summary.
@@ -74,7 +76,9 @@ def evaluate_command(
     delivered fraction, mean age, failure reasons, MPC solve times, the object's estimation
     error per phase est_error_mm_<belt|grasp|carried> and, for the predictor, its NEES per
     phase with the 95% band of a consistent filter) is printed and written to
-    OUT/NAME_summary.json. A config file may hold the options at top level or under
+    OUT/NAME_summary.json. Finished episodes are kept in OUT/.records as they finish: rerun
+    an interrupted command to resume it (--fresh: recompute). A config file may hold the
+    options at top level or under
     [evaluate], with the tables [evaluate.env] (ConveyorConfig fields on top of the
     --scenario preset), [evaluate.mpc] (MpcConfig) and [evaluate.predictor].
     """
@@ -107,7 +111,9 @@ def evaluate_command(
     )
     label = evaluation_label(cfg)
     with progress_bar(label, disable=as_json) as progress:
-        result = run_evaluation(cfg, out, name=name, progress=progress)
+        result = run_evaluation(cfg, out, name=name, progress=progress, fresh=fresh)
+    if result.reused:
+        note(f"resumed: {result.reused} episodes reused from {out / '.records'}")
     if not as_json:
         note(f"results written to {result.files['parquet']} and {result.files['summary']}")
     emit(result.summary, as_json=as_json, title=label)
@@ -136,6 +142,7 @@ def fig_cn_command(
         ),
     ] = None,
     out: OutOption = Path("results/fig_cn"),
+    fresh: FreshOption = False,
     as_json: JsonOption = False,
 ) -> None:
     """Fig. 4 (fig_cn), model-based: success vs delay and vs reliability, +/- predictor.
@@ -166,6 +173,7 @@ def fig_cn_command(
         cfg,
         out,
         progress=lambda it, total: track(it, total=total, description="fig_cn", disable=as_json),
+        fresh=fresh,
     )
     if as_json:
         emit(table, as_json=True)

@@ -10,9 +10,10 @@ d      synthesis: estimator under the learned QoS, QoS re-trained  checkpoints/s
 =====  ==========================================================  ===========================
 
 Outputs go under ``runs/checkpoints/`` of the working directory unless ``--out`` says
-otherwise; nothing is written into the installed package's ``models`` folder (the shipped
-checkpoints are reproduced with ``--out models/checkpoints/<name>``, see
-``models/checkpoints/README.md``). A later stage reads its inputs from its config
+otherwise; the installed package's ``models`` folder (the shipped checkpoints) is written
+only with ``--overwrite`` (they are reproduced with ``--out models/checkpoints/<name>
+--overwrite`` in a source checkout, see ``models/checkpoints/README.md``). A later stage
+reads its inputs from its config
 (``checkpoints/stage_a/model.zip`` etc.: the working directory, then the shipped ones), so
 chaining fresh runs means passing their paths, e.g.
 ``--set controller.checkpoint=runs/checkpoints/stage_a/model.zip``. The work folder
@@ -41,7 +42,7 @@ from codesign_mb.cli.common import (
     track,
 )
 
-__all__ = ["register", "train"]
+__all__ = ["refuse_package_models", "register", "train"]
 
 STAGES = ("a", "b", "c", "d")
 RUNS = Path("runs")
@@ -222,6 +223,14 @@ def train(
     resume: Annotated[
         bool, typer.Option("--resume", help="Continue from the work folder's checkpoint.")
     ] = False,
+    overwrite: Annotated[
+        bool,
+        typer.Option(
+            "--overwrite",
+            help="Allow --out or --work-dir inside the installed package's models folder "
+            "(replacing a shipped checkpoint).",
+        ),
+    ] = False,
     as_json: JsonOption = False,
 ) -> None:
     """Train one stage of the model-free pipeline (checkpoint, curve, resumable)."""
@@ -238,19 +247,48 @@ def train(
         scenario=scenario,
     )
     out_dir = out or default_out(stage, cfg)
-    result = run_stage(
-        stage,
-        cfg,
-        out_dir=out_dir,
-        work_dir=work_dir or RUNS / "train" / out_dir.name,
-        resume=resume,
-        progress=lambda it, total=None, description="": track(
-            it, total=total, description=description, disable=as_json
-        ),
-        command="codesign " + " ".join(shlex.quote(a) for a in sys.argv[1:]),
-    )
+    work = work_dir or RUNS / "train" / out_dir.name
+    if not overwrite:
+        refuse_package_models(("--out", out_dir), ("--work-dir", work))
+    try:
+        result = run_stage(
+            stage,
+            cfg,
+            out_dir=out_dir,
+            work_dir=work,
+            resume=resume,
+            progress=lambda it, total=None, description="": track(
+                it, total=total, description=description, disable=as_json
+            ),
+            command="codesign " + " ".join(shlex.quote(a) for a in sys.argv[1:]),
+        )
+    except KeyboardInterrupt:
+        raise KeyboardInterrupt(
+            f"the work folder {work} keeps what finished (SAC's last chunk, stage b's rounds); "
+            "rerun with --resume to continue from it"
+        ) from None
     note(f"stage {stage}: checkpoint written to {out_dir}")
     emit(result, as_json=as_json, title=f"stage {stage}")
+
+
+def refuse_package_models(*folders: tuple[str, Path]) -> None:
+    """``ValueError`` if a folder ``(option, path)`` is inside the package's ``models``.
+
+    The shipped checkpoints live there (:func:`~codesign_mb.core.registry.models_dir`, the
+    source tree's ``models/`` in an editable install); paths are compared resolved, so
+    ``./models/checkpoints/x`` in a source checkout and a symlink into it count too.
+    """
+    from codesign_mb.core import registry
+
+    models = registry.models_dir().resolve()
+    for option, folder in folders:
+        path = folder.expanduser().resolve()
+        if path == models or models in path.parents:
+            raise ValueError(
+                f"{option} {folder} is inside the installed package's models folder {models} "
+                "(the shipped checkpoints); pass --overwrite to write there, or choose "
+                "another folder (default: runs/)"
+            )
 
 
 def register(app: typer.Typer) -> None:

@@ -10,6 +10,7 @@ import typer
 from codesign_mb.cli.common import (
     SCENARIO_HELP,
     ConfigOption,
+    FreshOption,
     JsonOption,
     OutOption,
     SeedOption,
@@ -120,12 +121,14 @@ def capacity_command(
     out: OutOption = Path("results/fig_wifi"),
     config: ConfigOption = None,
     seed: SeedOption = 0,
+    fresh: FreshOption = False,
     as_json: JsonOption = False,
 ) -> None:
     """Task success vs number of robots on one channel (Fig. 6), per pipeline x scheduler.
 
     Writes OUT/fig_wifi.parquet, .csv and .json (one row per trial) and OUT/fig_wifi.png,
-    and prints each curve with its capacity (most robots at 95 % success).
+    and prints each curve with its capacity (most robots at 95 % success). Finished trials
+    are kept in OUT/.records as they finish: rerun an interrupted command to resume it.
 
     The plant and the pipelines (controller, estimator, QoS policy) come from --stack, or
     from the config file's plant and pipelines tables (in a capacity table or at the top
@@ -159,6 +162,7 @@ def capacity_command(
         cfg,
         out,
         progress=lambda pts: track(pts, total=n_points, description="capacity", disable=as_json),
+        fresh=fresh,
     )
     if not as_json:
         note(f"results written to {files['parquet']}, {files['csv']} and {files['png']}")

@@ -20,6 +20,7 @@ from typing import Any
 from stable_baselines3 import SAC
 
 from codesign_mb.adaptation.learned import LearnedQosPolicy, make_features
+from codesign_mb.core.checkpoints import reading_checkpoint
 from codesign_mb.core.registry import (
     ComponentSpec,
     PlantSpec,
@@ -312,8 +313,9 @@ def warm_start_multiplier(policy_dir: str | Path, *, default: float) -> float:
     path = Path(policy_dir) / "training.json"
     if not path.is_file():
         return float(default)
-    meta = json.loads(path.read_text())
-    return float((meta.get("shipped") or {}).get("lambda", meta.get("lambda", default)))
+    with reading_checkpoint(path, remedy="train it again with `codesign train c`"):
+        meta = json.loads(path.read_text())
+        return float((meta.get("shipped") or {}).get("lambda", meta.get("lambda", default)))
 
 
 def _spec_json(spec: ComponentSpec) -> dict[str, Any]:

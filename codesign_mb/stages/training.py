@@ -29,6 +29,7 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
+from codesign_mb.core.checkpoints import reading_checkpoint
 from codesign_mb.core.config import to_mapping
 from codesign_mb.core.results import atomic_write, package_version, to_jsonable
 from codesign_mb.core.seeds import episode_seeds, seed_set
@@ -187,13 +188,16 @@ def write_json(path: str | Path, data: Any) -> None:
         fh.write("\n")
 
 
+_WORK_REMEDY = "delete the work folder, or train without --resume"
+
+
 def load_state(work_dir: str | Path) -> TrainingState | None:
     """The state of a previous run in ``work_dir``, or ``None``."""
     path = Path(work_dir) / "state.json"
     if not path.is_file():
         return None
-    data = json.loads(path.read_text())
-    return TrainingState(**data)
+    with reading_checkpoint(path, remedy=_WORK_REMEDY):
+        return TrainingState(**json.loads(path.read_text()))
 
 
 def _save_model(model: Any, path: Path) -> None:
@@ -219,10 +223,12 @@ def resume_sac(work_dir: str | Path, env: gym.Env) -> Any | None:
     if not model_path.is_file():
         return None
     torch.set_num_threads(1)
-    model = SAC.load(model_path, env=env, device="cpu")
+    with reading_checkpoint(model_path, remedy=_WORK_REMEDY):
+        model = SAC.load(model_path, env=env, device="cpu")
     buffer_path = work_dir / "replay_buffer.pkl"
     if buffer_path.is_file():
-        model.load_replay_buffer(buffer_path)
+        with reading_checkpoint(buffer_path, remedy=_WORK_REMEDY):
+            model.load_replay_buffer(buffer_path)
     return model
 
 

@@ -54,6 +54,7 @@ import pandas as pd
 
 from codesign_mb.adaptation.rules import AgeTriggeredQos
 from codesign_mb.core.config import from_mapping
+from codesign_mb.core.records import RecordStore, digest
 from codesign_mb.core.registry import ComponentSpec, PlantSpec, build, make_plant
 from codesign_mb.evaluation import pool
 from codesign_mb.network.wrapper import LinkObservationWrapper
@@ -383,31 +384,60 @@ def run_capacity(
     config: CapacityConfig,
     *,
     progress: Callable[[Iterable[Any]], Iterable[Any]] | None = None,
+    store: RecordStore | None = None,
 ) -> pd.DataFrame:
-    """Every trial of every point of the sweep, one row each (tidy), in grid order."""
+    """Every trial of every point of the sweep, one row each (tidy), in grid order.
+
+    ``store`` keeps every finished trial and gives back those of an earlier run
+    (:mod:`codesign_mb.core.records`), keyed by the plant, root seed and step cap, and by the
+    point: its channel's cell, scheduler, pipeline stack, robot count and trial.
+    """
     points = config.points()
-    if config.workers == 1:
-        results: Iterable[dict[str, Any]] = (run_point(config, **kw) for kw in points)
-        rows = list(progress(results) if progress is not None else results)
-        return pd.DataFrame(rows)
-    # Largest points first keeps both workers busy to the end; rows go back in grid order.
-    order = sorted(range(len(points)), key=lambda j: -points[j]["n_robots"])
-    stream = pool.imap(
-        _run_point_kwargs, [((config, points[j]),) for j in order], workers=config.workers
-    )
-    ordered: list[dict[str, Any]] = [{}] * len(points)
-    finished = (row for _, row in _in_grid_order(stream, order, ordered))
-    for _ in progress(finished) if progress is not None else finished:
+    rows: list[dict[str, Any] | None] = [None] * len(points)
+    group, items = "", [""] * len(points)
+    if store is not None:
+        group = digest(
+            {"trials of": config.plant, "seed": config.seed, "max_steps": config.max_steps}
+        )
+        items = [_point_key(config, point) for point in points]
+        kept = store.take(group, items)
+        rows = [kept.get(item) for item in items]
+
+    def finished() -> Iterator[dict[str, Any]]:
+        yield from (row for row in list(rows) if row is not None)
+        todo = [k for k, row in enumerate(rows) if row is None]
+        for k, row in _compute(config, points, todo):
+            done = row if store is None else store.add(group, items[k], row)
+            rows[k] = done
+            yield done
+
+    for _ in progress(finished()) if progress is not None else finished():
         pass
-    return pd.DataFrame(ordered)
+    return pd.DataFrame(rows)
 
 
-def _in_grid_order(
-    stream: Iterable[tuple[int, dict[str, Any]]], order: list[int], out: list[dict[str, Any]]
+def _point_key(config: CapacityConfig, point: Mapping[str, Any]) -> str:
+    """The key of one trial of one point: the point and what its names stand for."""
+    cell = CHANNEL_PRESETS[point["channel_name"]]
+    return digest(
+        {"point": point, "cell": cell, "pipeline": config.pipelines[point["pipeline_name"]]}
+    )
+
+
+def _compute(
+    config: CapacityConfig, points: list[dict[str, Any]], todo: list[int]
 ) -> Iterator[tuple[int, dict[str, Any]]]:
-    # Task i computed point order[i]: put its row in place, pass it on (for the progress bar).
+    """``(point index, row)`` of the points ``todo``, as each finishes."""
+    if config.workers == 1:
+        for k in todo:
+            yield k, run_point(config, **points[k])
+        return
+    # Largest points first keeps both workers busy to the end.
+    order = sorted(todo, key=lambda k: -points[k]["n_robots"])
+    stream = pool.imap(
+        _run_point_kwargs, [((config, points[k]),) for k in order], workers=config.workers
+    )
     for i, row in stream:
-        out[order[i]] = row
         yield order[i], row
 
 

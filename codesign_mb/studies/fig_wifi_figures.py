@@ -14,6 +14,7 @@ from typing import Any
 import pandas as pd
 
 from codesign_mb.core.config import to_mapping
+from codesign_mb.core.records import RECORDS_DIR, RecordStore
 from codesign_mb.core.results import write_results
 from codesign_mb.studies.fig_wifi import (
     CHANNEL_PRESETS,
@@ -128,15 +129,19 @@ def run_capacity_study(
     out_dir: str | Path,
     *,
     progress: Callable[[Iterable[Any]], Iterable[Any]] | None = None,
+    fresh: bool = False,
 ) -> tuple[pd.DataFrame, pd.DataFrame, dict[str, Path]]:
     """Run the capacity sweep and write Fig. 6 into ``out_dir``.
 
     Writes ``fig_wifi.{parquet,csv,json}`` (one row per trial; the curves with their capacity
     in the metadata) and ``fig_wifi.png`` (:func:`plot_capacity`). Returns the trials, the
     curves (:func:`~codesign_mb.studies.fig_wifi.capacity_table`) and the files (``parquet``,
-    ``csv``, ``json``, ``png``).
+    ``csv``, ``json``, ``png``). Finished trials are kept in ``<out_dir>/.records`` and
+    reused by a rerun (``fresh``: none are).
     """
-    results = run_capacity(config, progress=progress)
+    store = RecordStore(Path(out_dir) / RECORDS_DIR, what="trial", fresh=fresh)
+    with store.on_interrupt():
+        results = run_capacity(config, progress=progress, store=store)
     curves = capacity_table(results, success_target=config.success_target)
     files = dict(
         write_results(
@@ -144,7 +149,11 @@ def run_capacity_study(
             table=results,
             config=to_mapping(config),
             name="fig_wifi",
-            extra={"curves": curves.to_dict("records")},
+            extra={
+                "curves": curves.to_dict("records"),
+                "computed": store.computed,
+                "reused": store.reused,
+            },
         )
     )
     files["png"] = plot_capacity(
