@@ -39,10 +39,14 @@ from __future__ import annotations
 
 import importlib
 import importlib.resources
+import inspect
+import typing
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
+
+from codesign_mb.core.config import ConfigError, coerce_value
 
 __all__ = [
     "KINDS",
@@ -239,7 +243,45 @@ def factory(role: str, spec: ComponentSpec) -> Factory:
         kwargs[kind.checkpoint_keyword] = str(resolve_checkpoint(spec.checkpoint))
     elif spec.checkpoint:
         raise ValueError(f"{role} kind {spec.kind!r} takes no checkpoint, got {spec.checkpoint!r}")
+    _check_options(f"{role} kind {spec.kind!r}", kind, spec.options)
     return Factory(kind.target, kwargs, takes_env=kind.takes_env)
+
+
+def _check_options(what: str, kind: Kind, options: Mapping[str, Any]) -> None:
+    """Options checked against the factory's signature: known names, scalar types.
+
+    The signature is the options' schema: an unknown name or a value of the wrong type is a
+    :class:`~codesign_mb.core.config.ConfigError` here, not a ``TypeError`` in a worker.
+    """
+    if not options:
+        return
+    fn = resolve(kind.target)
+    try:
+        signature = inspect.signature(fn, eval_str=True)
+    except NameError:  # an annotation imported for type checking only: names, no types
+        signature = inspect.signature(fn)
+    params = list(signature.parameters.values())[1 if kind.takes_env else 0 :]
+    owner = getattr(fn, "__self__", None)
+    if any(p.kind is p.VAR_KEYWORD for p in params) and isinstance(owner, type):
+        # A classmethod forwarding **overrides to its class: the constructor is the schema.
+        init = inspect.signature(owner, eval_str=True).parameters.values()
+        params = [p for p in params if p.kind is not p.VAR_KEYWORD] + list(init)
+    if any(p.kind is p.VAR_KEYWORD for p in params):
+        return
+    named = {p.name: p for p in params if p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY)}
+    named.pop(kind.checkpoint_keyword, None)
+    unknown = sorted(str(k) for k in options if k not in named)
+    if unknown:
+        raise ConfigError(
+            f"unknown option{'s' if len(unknown) > 1 else ''} {', '.join(map(repr, unknown))} "
+            f"of {what}; expected one of {', '.join(sorted(named))}"
+        )
+    for name, value in options.items():
+        annotation = named[name].annotation
+        scalars = {int, float, bool, str, type(None)}
+        arms = set(typing.get_args(annotation)) or {annotation}
+        if arms <= scalars:  # float, int | None, ...: checked like a config field
+            coerce_value(annotation, value, f"options.{name} of {what}")
 
 
 def build(role: str, spec: ComponentSpec, env: Any) -> Any:
