@@ -147,6 +147,15 @@ def _config(tmp_path: Path, text: str, suffix: str = ".toml") -> str:
         (["train", "a", "--set", "total_steps=NaN"], ["total_steps must be an integer, got nan"]),
         (["train", "c", "--set", "env.j_max=NaN"], ["env.j_max must be a finite number, got nan"]),
         (["bench", "env", "--repeats", "0"], ["repeats must be >= 1, got 0"]),
+        (
+            ["calibrate-perception", "--sweep-frames", "1000000000", "-o", "{tmp}/c.json"],
+            ["sweep_frames must be <= ", "1000000000"],
+        ),
+        (
+            ["calibrate-perception", "--episodes", "-1", "-o", "{tmp}/c.json"],
+            ["episodes must be >= 0, got -1"],
+        ),
+        (["sweep", "--workers", "100000"], ["workers must be <= 256"]),
     ],
 )
 def test_bad_option_is_one_line(args: list[str], needles: list[str], tmp_path: Path) -> None:

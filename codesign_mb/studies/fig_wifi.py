@@ -60,7 +60,14 @@ from codesign_mb.core.config import (
     check_range,
     from_mapping,
 )
-from codesign_mb.core.registry import ComponentSpec, PlantSpec, build, factory, make_plant
+from codesign_mb.core.registry import (
+    ComponentSpec,
+    PlantSpec,
+    build,
+    check_options,
+    factory,
+    make_plant,
+)
 from codesign_mb.evaluation import pool
 from codesign_mb.network.wrapper import LinkObservationWrapper
 from codesign_mb.plants.scenarios import scenario_options
@@ -161,6 +168,12 @@ QOS_RULES: dict[str, Callable[..., Any]] = {
     "covariance_triggered": covariance_rule,
 }
 """QoS kinds known to the capacity study on top of ``pipeline.components.QOS_KINDS``."""
+
+_RULE_SIGNATURES: dict[str, tuple[Callable[..., Any], bool]] = {
+    "age_triggered": (AgeTriggeredQos, False),
+    "covariance_triggered": (covariance_rule, True),
+}
+"""What each of :data:`QOS_RULES` calls, and whether with the plant: its options' schema."""
 
 CHANNEL_PRESETS: dict[str, WifiConfig] = {
     # Poor channel: every robot at MCS 1 (QPSK 1/2) with q0 = 0.9, the long 3.2 us guard
@@ -287,6 +300,8 @@ class CapacityConfig:
             plant = PlantSpec("conveyor", scenario_options(self.scenario))
         if isinstance(plant, Mapping):
             plant = from_mapping(PlantSpec, plant, where="plant")
+        if not isinstance(plant, PlantSpec):
+            raise ValueError(f"plant must be a table (name, options), got {plant!r}")
         object.__setattr__(self, "plant", plant)
         for name in ("trials", "workers"):
             value = getattr(self, name)
@@ -305,7 +320,12 @@ class CapacityConfig:
         for pipeline in pipelines.values():  # kinds, checkpoints and options, checked now
             for role in ("controller", "estimator", "qos"):
                 spec = getattr(pipeline, role)
-                if role != "qos" or spec.kind not in QOS_RULES:
+                if role == "qos" and spec.kind in QOS_RULES:
+                    rule, takes_env = _RULE_SIGNATURES[spec.kind]
+                    check_options(
+                        f"qos kind {spec.kind!r}", rule, spec.options, takes_env=takes_env
+                    )
+                else:
                     factory(role, spec)
 
     def robots_of(self, channel: str) -> tuple[int, ...]:

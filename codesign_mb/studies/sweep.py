@@ -72,6 +72,7 @@ from codesign_mb.core.config import (
     EPISODES_CAP,
     ROBOTS_CAP,
     SEED_CAP,
+    WORKERS_CAP,
     check_range,
     from_mapping,
     to_mapping,
@@ -441,6 +442,7 @@ def run_sweep(
         raise ValueError("address is only used with backend 'ray'")
     if workers is not None:
         _require_int("workers", workers, minimum=1)
+        check_range("workers", workers, cap=WORKERS_CAP)
     plan = plan_sweep(config)
     out = Path(out_dir)
     store = TrialStore(out / ".trials" / config.name)
