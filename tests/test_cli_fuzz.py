@@ -9,7 +9,7 @@ entry broken, or any JSON). Every run must exit 0 with a JSON result, or exit 2 
 (a traceback behind ``--debug``), never run past its time cap (Hypothesis' deadline).
 
 Valid files run tiny settings (one episode of a few steps), so that the suite stays within a
-few minutes; the commands whose every run is long (``train``, ``table``, ``paper``, and
+few minutes; the commands whose every run is long (``train``, ``table``, ``paper``, ``tune``, and
 ``render``, which needs OpenGL) get files with at least one invalid entry, and must refuse
 them before any work. ``derandomize=True``: the same examples on every machine.
 """
@@ -47,6 +47,7 @@ from codesign_mb.studies.render import RenderConfig
 from codesign_mb.studies.report_sections import ReportConfig
 from codesign_mb.studies.sweep import SweepConfig
 from codesign_mb.studies.table import TableConfig
+from codesign_mb.studies.tune import TuneConfig
 
 runner = CliRunner()
 
@@ -190,6 +191,9 @@ COMMANDS: dict[str, Command] = {
     ),
     "paper": Command(
         lambda c, t: ["paper", "-c", str(c), *_out(t)], "paper", PaperConfig, {}, runs=False
+    ),
+    "tune": Command(
+        lambda c, t: ["tune", "-c", str(c), *_out(t)], "tune", TuneConfig, {}, runs=False
     ),
     "render": Command(
         lambda c, t: ["render", "-c", str(c), "-o", str(t / "r.gif"), "--json"],

@@ -32,6 +32,7 @@ CONFIG_COMMANDS = {
     "wifi capacity": ["wifi", "capacity"],
     "evaluate": ["evaluate"],
     "evaluate fig-cn": ["evaluate", "fig-cn"],
+    "tune": ["tune"],
 }
 """Every command that takes a config file (-c), as a user types it."""
 
@@ -50,7 +51,7 @@ def one_line_error(result, *needles: str) -> str:
 def _run(args: list[str], tmp_path: Path):
     """Run ``args`` with its outputs under ``tmp_path`` (nothing written elsewhere)."""
     out: list[str] = []
-    if args[0] in ("evaluate", "sweep", "table", "paper", "report") or args[:2] == [
+    if args[0] in ("evaluate", "sweep", "table", "paper", "report", "tune") or args[:2] == [
         "wifi",
         "capacity",
     ]:
