@@ -173,7 +173,9 @@ def test_cli_sweep_config_file_and_errors(tmp_path: Path) -> None:
     bad.write_text("[sweep.params]\nreliability = 1.5\n")
     result = runner.invoke(_cli_app(), ["sweep", "-c", str(bad), "-o", str(out)])
     assert result.exit_code == 2
-    assert result.stderr == "error: reliability must be in [0, 1], got 1.5\n"
+    assert result.stderr == (
+        f"error: params.reliability must be in [0, 1], got 1.5 (config file [sweep] of {bad})\n"
+    )
 
     result = runner.invoke(_cli_app(), ["sweep", "--help"])
     assert result.exit_code == 0

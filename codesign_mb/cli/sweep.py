@@ -77,7 +77,7 @@ def sweep_command(
         typer.Option(
             "--pipeline",
             "-p",
-            help="Pipeline to compare (repeat the option); default: all of the scenario's.",
+            help="Pipeline to compare (repeat the option). \\[default: all of the scenario's]",
         ),
     ] = None,
     belt_speeds: Annotated[
@@ -92,12 +92,14 @@ def sweep_command(
         list[int] | None,
         typer.Option(
             "--robots",
-            "-n",
             help="Number of robots sharing the network (repeat the option). \\[default: 1]",
         ),
     ] = None,
     n_seeds: Annotated[
-        int, typer.Option("--seeds", help="Replicates (seeds) per grid point.")
+        int,
+        typer.Option(
+            "--seeds", "--trials", "-n", help="Replicates (trials, one seed each) per grid point."
+        ),
     ] = _DEFAULTS["n_seeds"],
     seed: SeedOption = _DEFAULTS["seed"],
     name: Annotated[str, typer.Option(help="Table name in the results folder.")] = _DEFAULTS[

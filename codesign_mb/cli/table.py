@@ -83,7 +83,7 @@ def table_command(
             "--plant",
             help=(
                 "A plant to evaluate on (repeatable): 0.2, 0.6 or variable (0.6 m/s with "
-                "speed steps and stops), or a scenario name. Default: the pipeline's."
+                "speed steps and stops), or a scenario name. \\[default: the pipeline's]"
             ),
         ),
     ] = None,
@@ -120,8 +120,8 @@ def table_command(
             "--references/--no-references",
             help=(
                 "Add the reference rows (blind q = 0, oracle q = 1 tau = 0, static q = 1 "
-                "tau = 1 per stack; random at each co-design row's reliability). Default: "
-                "yes for a pipeline's rows, no for rows given in a config."
+                "tau = 1 per stack; random at each co-design row's reliability). \\[default: "
+                "yes for a pipeline's rows, no for rows given in a config]"
             ),
         ),
     ] = None,

@@ -127,6 +127,9 @@ def stage_config(
         if estimator in ("none", "predictor"):
             overrides["estimator.checkpoint"] = None
     cfg: Any = load_config(_config_class(stage), config_file, {}, section=stage)
+    if stage == "a" and steps is not None:  # the warm-up's SAC updates count against --steps
+        for key in ("critic_warmup_steps", "actor_freeze_steps"):
+            overrides.setdefault(key, min(getattr(cfg, key), steps))
     return _apply(cfg, overrides) if overrides else cfg
 
 
@@ -174,15 +177,25 @@ def train(
     config: ConfigOption = None,
     steps: Annotated[
         int | None,
-        typer.Option("--steps", help="Total env steps (stages a, c, d); overrides the config."),
+        typer.Option(
+            "--steps",
+            help="SAC env steps (total_steps; stage d: qos.total_steps), over the config's. "
+            "Stage a: also caps the critic warm-up's updates (critic_warmup_steps, "
+            "actor_freeze_steps); not capped: the demonstrations (demo_episodes), the "
+            "evaluations (eval_episodes, final_eval_episodes); --set those. "
+            "\\[default: the config's: a 20000, c 40000, d 20000]",
+        ),
     ] = None,
-    seed: Annotated[int | None, typer.Option("--seed", help="Root seed.")] = None,
+    seed: Annotated[
+        int | None, typer.Option("--seed", help="Root seed. \\[default: the config's, 0]")
+    ] = None,
     estimator: Annotated[
         str | None,
         typer.Option(
             "--estimator",
             help="Stage c: the estimator kind the QoS policy is learned for "
-            "(mlp, lstm, none, predictor); its checkpoint comes from the config.",
+            "(mlp, lstm, none, predictor); its checkpoint comes from the config. "
+            "\\[default: the config's, mlp]",
         ),
     ] = None,
     scenario: Annotated[
@@ -207,8 +220,8 @@ def train(
         typer.Option(
             "--out",
             "-o",
-            help="Output (checkpoint) folder (default runs/checkpoints/<name>; the shipped "
-            "ones: models/checkpoints/<name>).",
+            help="Output (checkpoint) folder (the shipped ones: models/checkpoints/<name>). "
+            "\\[default: runs/checkpoints/<name>]",
             file_okay=False,
         ),
     ] = None,
@@ -216,7 +229,7 @@ def train(
         Path | None,
         typer.Option(
             "--work-dir",
-            help="Work folder for resume (default runs/train/<name>).",
+            help="Work folder for resume. \\[default: runs/train/<name>]",
             file_okay=False,
         ),
     ] = None,

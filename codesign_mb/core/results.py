@@ -320,9 +320,22 @@ class ResultsDir:
         return pd.read_parquet(self.path / f"{name}.parquet")
 
     def meta(self, name: str) -> dict[str, Any]:
-        """The metadata of ``name``: version, created, config, extra, columns, n_rows."""
+        """The metadata of ``name``: version, created, config, extra, columns, n_rows.
+
+        A file that is not a JSON object with a ``config`` is a ``ValueError`` naming it.
+        """
         self._require(name)
-        return json.loads((self.path / f"{name}.json").read_text())
+        path = self.path / f"{name}.json"
+        try:
+            meta = json.loads(path.read_text())
+        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+            raise ValueError(f"results file {str(path)!r} is not valid JSON: {exc}") from None
+        if not isinstance(meta, dict) or "config" not in meta:
+            raise ValueError(
+                f"results file {str(path)!r} must hold a JSON object with a 'config', "
+                f"got {type(meta).__name__}{' without config' if isinstance(meta, dict) else ''}"
+            )
+        return meta
 
     def config(self, name: str) -> Any:
         """The config stored with ``name`` (plain JSON types)."""

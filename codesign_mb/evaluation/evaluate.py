@@ -39,7 +39,7 @@ import pandas as pd
 from codesign_mb.adaptation.base import StaticQos
 from codesign_mb.control.mpc import MpcConfig
 from codesign_mb.core import registry
-from codesign_mb.core.config import from_mapping
+from codesign_mb.core.config import STEPS_CAP, WORKERS_CAP, check_range, from_mapping
 from codesign_mb.core.records import RecordStore, digest
 from codesign_mb.core.registry import ComponentSpec, Factory
 from codesign_mb.core.seeds import episode_seeds
@@ -518,6 +518,9 @@ class EvaluateConfig:
         for name in ("env", "mpc", "predictor"):
             if not isinstance(getattr(self, name), Mapping):
                 raise ValueError(f"{name} must be a table of options, got {getattr(self, name)!r}")
+        check_range("workers", self.workers, cap=WORKERS_CAP)
+        check_range("max_steps", self.max_steps, cap=STEPS_CAP)
+        self.env_config(), self.components()  # the option tables, checked when loaded
 
     def env_config(self) -> Any:
         """The plant config: the scenario's options, then :attr:`env`, :attr:`belt_speed_mps`."""

@@ -21,6 +21,7 @@ from stable_baselines3 import SAC
 
 from codesign_mb.adaptation.learned import LearnedQosPolicy, make_features
 from codesign_mb.core.checkpoints import reading_checkpoint
+from codesign_mb.core.config import EPISODES_CAP, TRAINING_STEPS_CAP
 from codesign_mb.core.registry import (
     ComponentSpec,
     PlantSpec,
@@ -115,8 +116,8 @@ class StageCConfig:
     seed: int = 0
 
     def __post_init__(self) -> None:
-        require_at_least(self, 1, "total_steps", "chunk_steps")
-        require_at_least(self, 0, "eval_episodes")
+        require_at_least(self, 1, "total_steps", "chunk_steps", cap=TRAINING_STEPS_CAP)
+        require_at_least(self, 0, "eval_episodes", cap=EPISODES_CAP)
         if not 0.0 <= self.target_success <= 1.0:
             raise ValueError(f"target_success must be in [0, 1], got {self.target_success}")
 

@@ -20,6 +20,7 @@ from typing import Any
 
 import pandas as pd
 
+from codesign_mb.core.config import LATENCY_STEPS_CAP, check_range
 from codesign_mb.core.records import RECORDS_DIR, RecordStore
 from codesign_mb.core.results import write_results
 from codesign_mb.evaluation.evaluate import (
@@ -104,6 +105,13 @@ class FigCnConfig:
         for e in self.estimators:
             if e not in _ESTIMATORS:
                 raise ValueError(f"estimators must be in {', '.join(_ESTIMATORS)}, got {e!r}")
+        check_range("delays", self.delays, cap=LATENCY_STEPS_CAP)
+        check_range(
+            "reliability_latency_steps",
+            self.reliability_latency_steps,
+            ge=0,
+            cap=LATENCY_STEPS_CAP,
+        )
         self.base()  # validates the shared fields (controller, trials, seed, workers)
 
     def base(self) -> EvaluateConfig:

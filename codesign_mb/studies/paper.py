@@ -55,6 +55,7 @@ from typing import Any
 
 import pandas as pd
 
+from codesign_mb.core.config import EPISODES_CAP, WORKERS_CAP, check_range
 from codesign_mb.core.records import RECORDS_DIR
 from codesign_mb.core.registry import resolve_checkpoint
 from codesign_mb.core.results import atomic_write, provenance, to_jsonable, write_results
@@ -168,6 +169,7 @@ class PaperConfig:
                 continue
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
+            check_range(name, value, cap=WORKERS_CAP if name == "workers" else EPISODES_CAP)
         seed_set(self.seeds)  # an unknown name names the sets
         for name in ("only", "skip"):
             value = tuple(getattr(self, name))

@@ -70,7 +70,15 @@ from typing import Any, Literal
 import numpy as np
 import pandas as pd
 
-from codesign_mb.core.config import from_mapping, to_mapping
+from codesign_mb.core.config import (
+    EPISODES_CAP,
+    ROBOTS_CAP,
+    SEED_CAP,
+    WORKERS_CAP,
+    check_range,
+    from_mapping,
+    to_mapping,
+)
 from codesign_mb.core.records import RECORDS_DIR, RecordStore
 from codesign_mb.core.results import to_jsonable, write_results
 from codesign_mb.core.seeds import episode_seeds
@@ -215,6 +223,12 @@ class SweepConfig:
         object.__setattr__(self, "robot_counts", tuple(int(n) for n in counts))
         object.__setattr__(self, "pipelines", pipelines)
         object.__setattr__(self, "params", dict(self.params))
+        check_range("seed", self.seed, cap=SEED_CAP)
+        check_range("n_seeds", self.n_seeds, cap=EPISODES_CAP)
+        check_range("robot_counts", counts, cap=ROBOTS_CAP)
+        n_trials = len(speeds) * len(counts) * self.n_seeds * max(1, len(pipelines))
+        check_range("the number of trials of the sweep", n_trials, cap=EPISODES_CAP)
+        plan_sweep(self)  # the scenario, its pipelines and params, checked when loaded
 
 
 def _require_int(name: str, value: Any, *, minimum: int) -> None:
@@ -404,6 +418,7 @@ def run_sweep(
         raise ValueError("address is only used with backend 'ray'")
     if workers is not None:
         _require_int("workers", workers, minimum=1)
+        check_range("workers", workers, cap=WORKERS_CAP)
     if not _NAME.match(config.name):
         raise ValueError(f"name must match {_NAME.pattern}, got {config.name!r}")
     plan = plan_sweep(config)

@@ -86,7 +86,7 @@ import numpy as np
 import pandas as pd
 from numpy.typing import ArrayLike, NDArray
 
-from codesign_mb.core.config import from_mapping
+from codesign_mb.core.config import EPISODES_CAP, SEED_CAP, WORKERS_CAP, check_range, from_mapping
 from codesign_mb.core.records import RecordStore
 from codesign_mb.core.registry import ComponentSpec, PlantSpec, build, make_plant, plant_factory
 from codesign_mb.evaluation.evaluate import rows_to_table, run_jobs
@@ -194,6 +194,9 @@ class TableConfig:
             raise ValueError(f"trials must be >= 1, got {self.trials}")
         if self.workers < 1:
             raise ValueError(f"workers must be >= 1, got {self.workers}")
+        check_range("trials", self.trials, cap=EPISODES_CAP)
+        check_range("workers", self.workers, cap=WORKERS_CAP)
+        check_range("seed", self.seed, ge=0, cap=SEED_CAP)
         if not 0.0 <= self.best_min_success <= 1.0:
             raise ValueError(f"best_min_success must be in [0, 1], got {self.best_min_success}")
         if self.on_missing not in ("skip", "error"):
