@@ -39,7 +39,7 @@ def app(monkeypatch: pytest.MonkeyPatch) -> typer.Typer:
 
 
 def test_bench_runs_registered_function(app: typer.Typer) -> None:
-    result = CliRunner().invoke(app, ["bench", "fake", "-n", "3", "--seed", "5", "--json"])
+    result = CliRunner().invoke(app, ["bench", "fake", "--repeats", "3", "--seed", "5", "--json"])
     assert result.exit_code == 0, result.output
     data = json.loads(result.stdout)
     assert data["benchmark"] == "fake" and data["repeats"] == 3 and data["seed_seen"] == 5
@@ -53,7 +53,7 @@ def test_unknown_benchmark_is_a_readable_error(app: typer.Typer) -> None:
 
 
 def test_bench_all_fails_when_one_fails(app: typer.Typer) -> None:
-    result = CliRunner().invoke(app, ["bench", "all", "--json", "-n", "1"])
+    result = CliRunner().invoke(app, ["bench", "all", "--json", "--repeats", "1"])
     assert result.exit_code == 1, result.output
     data = json.loads(result.stdout)
     assert [d["benchmark"] for d in data] == ["fake", "broken"]
@@ -70,7 +70,7 @@ def test_bench_config_file(app: typer.Typer, tmp_path: Any) -> None:
     cfg.write_text("[bench]\nrepeat = 4\n")
     result = CliRunner().invoke(app, ["bench", "fake", "-c", str(cfg)])
     assert result.exit_code == 2 and result.stderr.startswith("error: unknown key 'repeat'")
-    result = CliRunner().invoke(app, ["bench", "fake", "-n", "0"])
+    result = CliRunner().invoke(app, ["bench", "fake", "--repeats", "0"])
     assert result.stderr == "error: repeats must be >= 1, got 0\n"
 
 

@@ -94,7 +94,7 @@ runner = CliRunner()
 def test_validation_error_is_one_line_exit_2() -> None:
     result = runner.invoke(_app(), ["demo", "--reliability", "1.5"])
     assert result.exit_code == 2
-    assert result.stderr == "error: reliability must be in [0, 1], got 1.5\n"
+    assert result.stderr == "error: link.reliability must be in [0, 1], got 1.5\n"
     assert result.stdout == ""
     assert "Traceback" not in result.output
 

@@ -321,12 +321,29 @@ def test_demo_runs_the_robot_by_default(tmp_path) -> None:
 
 
 def test_a_dead_worker_is_replaced_and_the_table_unchanged(tmp_path) -> None:
+    import json
+
+    from codesign_mb.core.records import RecordStore
+
     qos = StaticQos(reliability=0.6, latency_steps=1)
     marker = str(tmp_path / "crashed")
+    store = RecordStore(tmp_path / ".records")
     with pytest.warns(RuntimeWarning, match="worker process died"):
         crashed = evaluate(
-            CrashOnceController(marker), PassThroughEstimator, qos, make_catch_env, 6, 3, workers=2
+            CrashOnceController(marker),
+            PassThroughEstimator,
+            qos,
+            make_catch_env,
+            6,
+            3,
+            workers=2,
+            store=store,
         )
     reference = _table(workers=1)
     keep = [c for c in reference.columns if c not in TIMING_COLUMNS]
     pd.testing.assert_frame_equal(crashed[keep], reference[keep])
+    # every episode stored once, as finished: none lost to the dead worker, none twice
+    [path] = (tmp_path / ".records").glob("*.jsonl")
+    items = [json.loads(line)["item"] for line in path.read_text().splitlines()]
+    episodes = zip(crashed["episode"], crashed["seed"], strict=True)
+    assert sorted(items) == sorted(f"{i}:{s}" for i, s in episodes)

@@ -88,21 +88,61 @@ def test_train_a_writes_checkpoint_then_resumes(runner: CliRunner, tmp_path: Pat
 def test_train_writes_under_runs_by_default(
     runner: CliRunner, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    """Without --out, the checkpoint goes to the working directory's runs/, not to models/."""
+    """Without --out, the checkpoint goes to the working directory's runs/, and nothing under
+    the package's models/checkpoints/ changes (no file written, touched or added)."""
     from codesign_mb.core.registry import models_dir
 
     config = tmp_path / "toy.toml"
     config.write_text(TOY_A.replace("total_steps = 200", "total_steps = 100"))
     monkeypatch.chdir(tmp_path)
-    shipped = models_dir() / "checkpoints" / "stage_a" / "training.json"
-    before = shipped.read_bytes()
+    shipped = models_dir() / "checkpoints"
+    before = _snapshot(shipped)
     result = runner.invoke(app, ["train", "a", "-c", str(config), "--json"])
     assert result.exit_code == 0, result.output
     assert json.loads(result.stdout)["env_steps"] == 100
     out = tmp_path / "runs" / "checkpoints" / "stage_a"
     assert (out / "model.zip").is_file() and (out / "training.json").is_file()
     assert (tmp_path / "runs" / "train" / "stage_a" / "state.json").is_file()
-    assert shipped.read_bytes() == before
+    assert _snapshot(shipped) == before
+
+
+def _snapshot(folder: Path) -> dict[str, tuple[int, bytes]]:
+    """Every file under ``folder``: modification time (ns) and content."""
+    return {
+        str(p.relative_to(folder)): (p.stat().st_mtime_ns, p.read_bytes())
+        for p in sorted(folder.rglob("*"))
+        if p.is_file()
+    }
+
+
+def test_train_refuses_the_package_models_folder_without_overwrite(
+    runner: CliRunner, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """--out (or --work-dir) inside models/ needs --overwrite; checked before any training."""
+    from codesign_mb.core import registry
+
+    models = tmp_path / "package" / "models"  # stands in for the installed package's
+    (models / "checkpoints" / "stage_a").mkdir(parents=True)
+    monkeypatch.setattr(registry, "models_dir", lambda: models.resolve())
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "link").symlink_to(models / "checkpoints")
+    config = tmp_path / "toy.toml"
+    config.write_text(TOY_A)
+    for extra in (
+        ["--out", str(models / "checkpoints" / "stage_a")],
+        ["--out", "link/stage_a"],  # the same folder through a symlink
+        ["--out", "runs/a", "--work-dir", str(models / "work")],
+    ):
+        result = runner.invoke(app, ["train", "a", "-c", str(config), *extra])
+        assert result.exit_code == 2, result.output
+        [line] = result.stderr.splitlines()
+        assert "inside the installed package's models folder" in line and "--overwrite" in line
+    assert not any(models.rglob("*.json")) and not (tmp_path / "runs").exists()
+    config.write_text(TOY_A.replace("total_steps = 200", "total_steps = 100"))
+    out = models / "checkpoints" / "stage_a"
+    result = runner.invoke(app, ["train", "a", "-c", str(config), "--out", str(out), "--overwrite"])
+    assert result.exit_code == 0, result.output
+    assert (out / "model.zip").is_file()
 
 
 def test_train_rejects_bad_input(runner: CliRunner, tmp_path: Path) -> None:

@@ -256,7 +256,10 @@ def test_explain_table_renders_reasons_errors_and_nees() -> None:
         "est_error_mm_belt": 28.04,
         "est_error_mm_grasp": 6.66,
         "est_error_mm_carried": 11.4,
-        **{f"nees_{p}": v for p, v in zip(("belt", "grasp", "carried"), (4.36, 4.44, 12.5))},
+        **{
+            f"nees_{p}": v
+            for p, v in zip(("belt", "grasp", "carried"), (4.36, 4.44, 12.5), strict=True)
+        },
         **{f"nees_{p}_low": 2.9 for p in ("belt", "grasp", "carried")},
         **{f"nees_{p}_high": 3.1 for p in ("belt", "grasp", "carried")},
     }

@@ -81,18 +81,18 @@ def test_interrupted_sweep_resumes_without_recomputing(tmp_path: Path) -> None:
 
         return progress
 
-    with pytest.raises(KeyboardInterrupt):
+    with pytest.raises(KeyboardInterrupt, match="8 finished trials kept in"):
         run_sweep(cfg, tmp_path / "out", backend="serial", progress=interrupt_after(7))
-    assert _calls(calls) == 8  # the 8th ran but was interrupted before being stored
+    assert _calls(calls) == 8  # the 8th was stored as it finished, then Ctrl-C came
     assert "sweep" not in ResultsDir(tmp_path / "out")  # no table from a partial sweep
 
     result = run_sweep(cfg, tmp_path / "out", backend="serial")
-    assert (result.computed, result.reused) == (total - 7, 7)
-    assert _calls(calls) == 8 + total - 7
+    assert (result.computed, result.reused) == (total - 8, 8)
+    assert _calls(calls) == total  # no trial computed twice
     # A complete sweep is not recomputed at all, on any backend.
     again = run_sweep(cfg, tmp_path / "out", backend="local", workers=2)
     assert (again.computed, again.reused) == (0, total)
-    assert _calls(calls) == 8 + total - 7
+    assert _calls(calls) == total
     pd.testing.assert_frame_equal(again.table, result.table)
     # Changing a scenario parameter invalidates the stored rows.
     changed = run_sweep(
@@ -173,7 +173,9 @@ def test_cli_sweep_config_file_and_errors(tmp_path: Path) -> None:
     bad.write_text("[sweep.params]\nreliability = 1.5\n")
     result = runner.invoke(_cli_app(), ["sweep", "-c", str(bad), "-o", str(out)])
     assert result.exit_code == 2
-    assert result.stderr == "error: reliability must be in [0, 1], got 1.5\n"
+    assert result.stderr == (
+        f"error: params.reliability must be in [0, 1], got 1.5 (config file [sweep] of {bad})\n"
+    )
 
     result = runner.invoke(_cli_app(), ["sweep", "--help"])
     assert result.exit_code == 0

@@ -171,7 +171,7 @@ def test_missing_checkpoint_is_a_readable_error(no_checkpoints: Path) -> None:
 def test_cli_conveyor_params_and_wifi_link(tmp_path: Path) -> None:
     """--param reaches the scenario; the WiFi link runs n robots in lockstep on one cell."""
     args = ["sweep", "--scenario", "conveyor", "-p", "model-based-static", "-v", "0.6"]
-    args += ["-n", "2", "--seeds", "1", "--param", "horizon=30", "--param", "link=wifi"]
+    args += ["--robots", "2", "--seeds", "1", "--param", "horizon=30", "--param", "link=wifi"]
     args += ["-o", str(tmp_path), "--backend", "serial", "--json"]
     result = CliRunner().invoke(_cli_app(), args)
     assert result.exit_code == 0, result.output

@@ -24,6 +24,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from codesign_mb.core import registry
+from codesign_mb.core.checkpoints import reading_checkpoint
 from codesign_mb.core.results import atomic_write
 from codesign_mb.network.qos import QosRequest
 
@@ -336,7 +337,11 @@ class LearnedQosPolicy:
                 f"{str(directory)!r} holds no QoS policy (model.zip + qos_policy.json); "
                 "train one with `codesign train c`"
             )
-        return json.loads(meta_path.read_text())
+        with reading_checkpoint(meta_path, remedy="train it again with `codesign train c`"):
+            meta = json.loads(meta_path.read_text())
+            if not isinstance(meta, dict):
+                raise ValueError(f"a {type(meta).__name__}, not a table")
+        return meta
 
     @classmethod
     def from_env(
@@ -361,6 +366,7 @@ class LearnedQosPolicy:
 
         directory = Path(directory)
         meta = cls.read_meta(directory)
-        interface = QosInterface(**meta["interface"])
-        model = SAC.load(directory / "model.zip", device="cpu")
+        with reading_checkpoint(directory, remedy="train it again with `codesign train c`"):
+            interface = QosInterface(**meta["interface"])
+            model = SAC.load(directory / "model.zip", device="cpu")
         return cls(model, interface, features=features, deterministic=deterministic)

@@ -13,6 +13,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
+from codesign_mb.core.config import SEED_CAP, Cap, check_range
 from codesign_mb.core.registry import resolve
 
 __all__ = ["BENCHMARKS", "BenchConfig", "BenchmarkFailed", "run_all", "run_benchmark"]
@@ -24,6 +25,9 @@ BENCHMARKS: dict[str, str] = {
     "allocators": "codesign_mb.bench.allocators:bench_allocators",
 }
 """Benchmark name -> ``"module:function"``; the function is ``(*, repeats, seed) -> dict``."""
+
+
+REPEATS_CAP = Cap(10_000, "repetitions of a benchmark")
 
 
 @dataclass(frozen=True)
@@ -38,10 +42,10 @@ class BenchConfig:
     def __post_init__(self) -> None:
         if isinstance(self.repeats, bool) or not isinstance(self.repeats, int):
             raise ValueError(f"repeats must be an integer, got {self.repeats!r}")
-        if self.repeats < 1:
-            raise ValueError(f"repeats must be >= 1, got {self.repeats}")
+        check_range("repeats", self.repeats, ge=1, cap=REPEATS_CAP)
         if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
             raise ValueError(f"seed must be a non-negative integer, got {self.seed!r}")
+        check_range("seed", self.seed, cap=SEED_CAP)
 
 
 class BenchmarkFailed(RuntimeError):

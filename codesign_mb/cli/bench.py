@@ -37,7 +37,7 @@ def bench(
         ),
     ],
     repeats: Annotated[
-        int, typer.Option("--repeats", "-n", help="Repetitions per measurement.")
+        int, typer.Option("--repeats", help="Repetitions per measurement.")
     ] = BenchConfig.repeats,
     seed: SeedOption = BenchConfig.seed,
     config: ConfigOption = None,

@@ -30,10 +30,13 @@ A command module uses these four helpers and the option types below::
 
 Conventions
 -----------
-- Errors of the user (bad values, unknown config keys, missing files) are ``ValueError``
-  (or ``TypeError``/``OSError``) raised anywhere below the command; :func:`cli_errors` turns
-  them into one line ``error: <message>`` on stderr and exit code 2. Any other exception is a
-  bug and keeps its traceback. ``CODESIGN_DEBUG=1`` re-raises user errors too.
+- Errors of the user (bad values, unknown config keys, missing or malformed files) are
+  ``ValueError`` or ``OSError`` raised anywhere below the command; a config value of the
+  wrong type is one too (:func:`~codesign_mb.core.config.from_mapping` raises
+  ``ConfigError``, a ``ValueError``, for it). :func:`cli_errors` turns them into one line
+  ``error: <message>`` on stderr and exit code 2. Any other exception (a ``TypeError`` in the
+  code included) is a bug: exit code 1, and ``codesign --debug`` (``CODESIGN_DEBUG=1``)
+  shows its traceback.
 - Results go to stdout (:func:`emit`: a rich table, or JSON with ``--json``); progress and
   notes go to stderr, so ``codesign ... --json | jq`` always sees pure JSON.
 """
@@ -41,6 +44,7 @@ Conventions
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import functools
 import json
 import os
@@ -52,12 +56,13 @@ from typing import Annotated, Any, ParamSpec, TypeVar
 import click
 import typer
 
-from codesign_mb.core.config import from_mapping, load_config_file
+from codesign_mb.core.config import ConfigError, from_mapping, load_config_file
 
 __all__ = [
     "SCENARIO_HELP",
     "SCENARIO_NAMES",
     "ConfigOption",
+    "FreshOption",
     "JsonOption",
     "OutOption",
     "ScenarioOption",
@@ -119,6 +124,14 @@ ScenarioOption = Annotated[
         show_default=False,
     ),
 ]
+FreshOption = Annotated[
+    bool,
+    typer.Option(
+        "--fresh",
+        help="Recompute every episode instead of reusing those an earlier run kept in "
+        "OUT/.records (an interrupted run resumes from them).",
+    ),
+]
 OutOption = Annotated[
     Path,
     typer.Option("--out", "-o", help="Results folder (created if missing).", file_okay=False),
@@ -131,7 +144,8 @@ def cli_errors(func: Callable[P, R]) -> Callable[P, R]:
     ``ValueError`` and ``OSError`` (bad value, missing file) are printed as
     ``error: <message>`` on stderr and exit with code 2. Any other exception (``TypeError``
     included) is a bug: it is shown as ``error: unexpected <Type>: <message>`` with a pointer
-    to ``--debug`` and exits with code 1. Ctrl-C says so and exits with 130.
+    to ``--debug`` and exits with code 1. Ctrl-C says so, with what the run kept and how to
+    resume when the library says (a ``KeyboardInterrupt`` with a message), and exits with 130.
     ``typer.Exit``/``typer.Abort`` pass through. ``codesign --debug`` (or ``CODESIGN_DEBUG=1``)
     re-raises everything with its traceback.
 
@@ -145,10 +159,11 @@ def cli_errors(func: Callable[P, R]) -> Callable[P, R]:
             return func(*args, **kwargs)
         except (typer.Exit, typer.Abort, click.exceptions.ClickException):
             raise
-        except KeyboardInterrupt:
+        except KeyboardInterrupt as exc:
             if os.environ.get("CODESIGN_DEBUG"):
                 raise
-            typer.echo("interrupted", err=True)
+            kept = _one_line(exc) if exc.args else ""  # what was kept, how to resume
+            typer.echo(f"interrupted: {kept}" if kept else "interrupted", err=True)
             raise typer.Exit(code=INTERRUPTED_EXIT_CODE) from None
         except _USER_ERRORS as exc:
             if os.environ.get("CODESIGN_DEBUG"):
@@ -367,7 +382,9 @@ def load_config(
     Raises
     ------
     ValueError
-        Unknown keys, a missing or malformed file, or a value the dataclass rejects.
+        Unknown keys, a missing or malformed file, or a value the dataclass rejects
+        (:class:`~codesign_mb.core.config.ConfigError`: one line naming the field and the
+        value, and the file when the file's own value is at fault).
     """
     data: dict[str, Any] = {}
     source = ""
@@ -388,6 +405,17 @@ def load_config(
                 )
             data = dict(data[section])
             source = f"[{section}] of {path}"
+        elif section is not None:  # no [section]: the top level, unless it holds other tables
+            fields = {f.name for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
+            tables = sorted(
+                k for k, v in data.items() if isinstance(v, Mapping) and k not in fields
+            )
+            if tables:
+                raise ConfigError(
+                    f"config file {str(path)!r} has no [{section}] table, the one this command "
+                    f"reads (it has {', '.join(f'[{t}]' for t in tables)})"
+                )
+    from_file = dict(data)
     for key, value in (overrides or {}).items():
         if value is None:
             continue
@@ -395,9 +423,17 @@ def load_config(
     try:
         return from_mapping(cls, data)
     except ValueError as exc:
-        if source and str(exc).startswith("unknown key"):
-            raise ValueError(f"{exc} (config file {source})") from exc
-        raise
+        if not source or _valid(cls, from_file):
+            raise  # no file, or the file is fine alone: the command line's value is at fault
+        raise ConfigError(f"{exc} (config file {source})") from exc
+
+
+def _valid(cls: type, data: Mapping[str, Any]) -> bool:
+    try:
+        from_mapping(cls, data)
+    except ValueError:
+        return False
+    return True
 
 
 def _set_dotted(data: dict[str, Any], key: str, value: Any) -> None:

@@ -34,6 +34,23 @@ __all__ = ["SCENARIOS", "demo", "register"]
 SCENARIOS: tuple[str, ...] = ("robot", "lqg")
 """The scenarios ``--scenario`` accepts; the first is the default."""
 
+_ROBOT = {"reliabilities": "1, 0.3, 0.1", "latency_steps": 1, "episodes": 4}
+_LQG = {"reliabilities": "1, 0.9, 0.7, 0.5, 0.3", "latency_steps": 0, "episodes": 8, "horizon": 250}
+"""The defaults of ``RobotDemoConfig`` and ``LqgDemoConfig`` as ``--help`` shows them (here so
+that ``--help`` imports no physics; a test checks they agree)."""
+
+ROBOT_TABLE_NOTE = (
+    "success: episodes whose object was lifted (95% Wilson interval); age: mean age of the "
+    "held observation in steps; deliv.: delivered share of the packets; err cm: mean error of "
+    "the estimated object position; MPC ms: median MPC solve time."
+)
+LQG_TABLE_NOTE = (
+    "mean_cost: LQG stage cost x'Qx + u'Ru per step, averaged over the episodes (cost_ci95: "
+    "the 95% half-width); mean_age: age of the held measurement in steps; delivered_fraction: "
+    "share of the measurements that arrived."
+)
+"""The line printed under each demo's table: what its columns are."""
+
 
 def demo(
     ctx: typer.Context,
@@ -44,8 +61,8 @@ def demo(
         str | None,
         typer.Option(
             "--plant",
-            help="Linear plant of the lqg scenario: scalar, double_integrator or pendulum "
-            "(default pendulum).",
+            help="Linear plant of the lqg scenario: scalar, double_integrator or pendulum. "
+            "\\[default: pendulum]",
             show_default=False,
         ),
     ] = None,
@@ -54,8 +71,8 @@ def demo(
         typer.Option(
             "--reliability",
             "-q",
-            help="Link reliability q in [0, 1]; repeat for several "
-            "(default 1, 0.9, 0.7, 0.5, 0.3).",
+            help="Link reliability q in [0, 1]; repeat for several. "
+            f"\\[default: robot {_ROBOT['reliabilities']}; lqg {_LQG['reliabilities']}]",
             show_default=False,
         ),
     ] = None,
@@ -63,22 +80,29 @@ def demo(
         int | None,
         typer.Option(
             "--latency",
-            help="Link latency tau in steps of 40 ms (default: robot 1, lqg 0).",
+            help="Link latency tau in steps of 40 ms. "
+            f"\\[default: robot {_ROBOT['latency_steps']}, lqg {_LQG['latency_steps']}]",
             show_default=False,
         ),
     ] = None,
     episodes: Annotated[
         int | None,
         typer.Option(
+            "--trials",
             "--episodes",
             "-n",
-            help="Seeded episodes per reliability (default: the scenario's).",
+            help="Seeded episodes per reliability. "
+            f"\\[default: robot {_ROBOT['episodes']}, lqg {_LQG['episodes']}]",
             show_default=False,
         ),
     ] = None,
     horizon: Annotated[
         int | None,
-        typer.Option("--horizon", help="Steps per episode, lqg (default 250).", show_default=False),
+        typer.Option(
+            "--horizon",
+            help=f"Steps per episode, lqg. \\[default: {_LQG['horizon']}]",
+            show_default=False,
+        ),
     ] = None,
     seed: SeedOption = 0,
     config: ConfigOption = None,
@@ -127,6 +151,7 @@ def demo(
         f"{result['critical_reliability_lower_bound']:.3f}"
     )
     emit(result["rows"], as_json=False, title=title)
+    typer.echo(LQG_TABLE_NOTE)
 
 
 def _robot_demo(
@@ -177,6 +202,7 @@ def _robot_demo(
         "delay-compensating Kalman prediction, none = stale observation)"
     )
     emit(rows, as_json=False, title=title)
+    typer.echo(ROBOT_TABLE_NOTE)
 
 
 def register(app: typer.Typer) -> None:

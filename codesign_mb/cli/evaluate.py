@@ -14,6 +14,7 @@ import typer
 
 from codesign_mb.cli.common import (
     ConfigOption,
+    FreshOption,
     JsonOption,
     OutOption,
     ScenarioOption,
@@ -31,7 +32,7 @@ __all__ = ["evaluate_command", "fig_cn_command", "register"]
 
 WorkersOption = Annotated[
     int | None,
-    typer.Option("--workers", "-j", help="Worker processes. [default: one per CPU]"),
+    typer.Option("--workers", "-j", help="Worker processes. \\[default: one per CPU]"),
 ]
 
 
@@ -55,28 +56,33 @@ def evaluate_command(
     ] = 0,
     belt_speed: Annotated[
         float | None,
-        typer.Option("--belt-speed", help="Belt speed in m/s. [default: the scenario's]"),
+        typer.Option("--belt-speed", help="Belt speed in m/s. \\[default: the scenario's]"),
     ] = None,
     scenario: ScenarioOption = None,
     trials: Annotated[int, typer.Option("--trials", "-n", help="Episodes (>= 1).")] = 100,
     seed: SeedOption = 0,
     workers: WorkersOption = None,
     max_steps: Annotated[
-        int | None, typer.Option(help="Cap on the steps of an episode. [default: horizon]")
+        int | None,
+        typer.Option(help="Cap on the steps of an episode. \\[default: the plant's horizon]"),
     ] = None,
     out: OutOption = Path("results/evaluate"),
     name: Annotated[str, typer.Option(help="Table name in the results folder.")] = "evaluate",
+    fresh: FreshOption = False,
     as_json: JsonOption = False,
 ) -> None:
-    """Run seeded episodes in parallel; write OUT/NAME.parquet/.csv/.json and a summary.
+    """Evaluate controller + estimator + QoS policy on the conveyor (seeded, parallel).
 
+    Runs seeded episodes in parallel and writes OUT/NAME.parquet/.csv/.json and a summary.
     The summary (success rate with its 95% Wilson interval, mean requested reliability,
     delivered fraction, mean age, failure reasons, MPC solve times, the object's estimation
     error per phase est_error_mm_<belt|grasp|carried> and, for the predictor, its NEES per
     phase with the 95% band of a consistent filter) is printed and written to
-    OUT/NAME_summary.json. A config file may hold the options at top level or under
-    [evaluate], with the tables [evaluate.env] (ConveyorConfig fields on top of the
-    --scenario preset), [evaluate.mpc] (MpcConfig) and [evaluate.predictor].
+    OUT/NAME_summary.json. Finished episodes are kept in OUT/.records as they finish: rerun
+    an interrupted command to resume it (--fresh: recompute). A config file may hold the
+    options at top level or under \\[evaluate], with the tables \\[evaluate.env]
+    (ConveyorConfig fields on top of the --scenario preset), \\[evaluate.mpc] (MpcConfig) and
+    \\[evaluate.predictor] (the predictor's keyword arguments).
     """
     if ctx.invoked_subcommand is not None:
         return
@@ -107,7 +113,9 @@ def evaluate_command(
     )
     label = evaluation_label(cfg)
     with progress_bar(label, disable=as_json) as progress:
-        result = run_evaluation(cfg, out, name=name, progress=progress)
+        result = run_evaluation(cfg, out, name=name, progress=progress, fresh=fresh)
+    if result.reused:
+        note(f"resumed: {result.reused} episodes reused from {out / '.records'}")
     if not as_json:
         note(f"results written to {result.files['parquet']} and {result.files['summary']}")
     emit(result.summary, as_json=as_json, title=label)
@@ -121,27 +129,28 @@ def fig_cn_command(
     workers: WorkersOption = None,
     delays: Annotated[
         list[int] | None,
-        typer.Option("--delay", help="Fixed delays in steps (repeat). [default: 0..8]"),
+        typer.Option("--delay", help="Fixed delays in steps (repeat). \\[default: 0..8]"),
     ] = None,
     belt_speeds: Annotated[
         list[float] | None,
-        typer.Option("--belt-speed", help="Belt speeds in m/s (repeat). [default: 0.2, 0.6]"),
+        typer.Option("--belt-speed", help="Belt speeds in m/s (repeat). \\[default: 0.2, 0.6]"),
     ] = None,
     reliabilities: Annotated[
         list[float] | None,
         typer.Option(
             "--reliability",
             "-q",
-            help="I.i.d. reliabilities (repeat). [default: 1 .8 .5 .3 .2 .1 .05]",
+            help="I.i.d. reliabilities (repeat). \\[default: 1 .8 .5 .3 .2 .1 .05]",
         ),
     ] = None,
     out: OutOption = Path("results/fig_cn"),
+    fresh: FreshOption = False,
     as_json: JsonOption = False,
 ) -> None:
     """Fig. 4 (fig_cn), model-based: success vs delay and vs reliability, +/- predictor.
 
     Writes OUT/fig_cn.parquet/.csv/.json (one row per point, with Wilson intervals) and
-    OUT/fig_cn.png. Config file: top level or [fig_cn] (FigCnConfig fields).
+    OUT/fig_cn.png. Config file: top level or \\[fig_cn] (FigCnConfig fields).
     """
     from codesign_mb.studies.fig_cn import FigCnConfig, run_fig_cn_study
 
@@ -166,6 +175,7 @@ def fig_cn_command(
         cfg,
         out,
         progress=lambda it, total: track(it, total=total, description="fig_cn", disable=as_json),
+        fresh=fresh,
     )
     if as_json:
         emit(table, as_json=True)
@@ -195,9 +205,8 @@ def _fig_cn_rows(table: Any) -> list[dict[str, Any]]:
 
 def register(app: typer.Typer) -> None:
     """Add ``codesign evaluate`` (and ``codesign evaluate fig-cn``) to ``app``."""
-    group = typer.Typer(
+    group = typer.Typer(  # no help=: `evaluate --help` shows the callback's docstring
         name="evaluate",
-        help="Evaluate controller + estimator + QoS policy on the conveyor (seeded, parallel).",
         invoke_without_command=True,
         no_args_is_help=False,
     )

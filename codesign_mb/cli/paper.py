@@ -154,7 +154,7 @@ def readme_command(
     results_dir: Annotated[
         Path | None,
         typer.Argument(
-            help="A `codesign paper` folder to export into DOCS first. [default: render the "
+            help="A `codesign paper` folder to export into DOCS first. \\[default: render the "
             "DOCS already there]",
             file_okay=False,
             show_default=False,

@@ -34,8 +34,9 @@ _DEFAULTS: dict[str, Any] = {
 
 _HELP = (
     "Run a sweep: pipelines x belt speeds x robot counts x seeds, one row per trial.\n\n"
-    "Finished trials are kept in OUT/.trials/NAME/, so rerunning an interrupted sweep computes "
-    "only the missing ones; the table goes to OUT/NAME.parquet (+ .csv, .json). A config file "
+    "Finished trials are kept in OUT/.records/sweep_NAME.jsonl, so rerunning an interrupted "
+    "sweep computes only the missing ones; the table goes to OUT/NAME.parquet (+ .csv, .json). "
+    "A config file "
     "holds the grid at top level or under \\[sweep] (keys: scenario, name, seed, n_seeds, "
     "belt_speeds_mps, robot_counts, pipelines) and the scenario's settings under "
     "\\[sweep.params] (linear: reliability, latency_steps, capacity_robots, horizon_steps, ...; "
@@ -76,7 +77,7 @@ def sweep_command(
         typer.Option(
             "--pipeline",
             "-p",
-            help="Pipeline to compare (repeat the option); default: all of the scenario's.",
+            help="Pipeline to compare (repeat the option). \\[default: all of the scenario's]",
         ),
     ] = None,
     belt_speeds: Annotated[
@@ -91,12 +92,14 @@ def sweep_command(
         list[int] | None,
         typer.Option(
             "--robots",
-            "-n",
             help="Number of robots sharing the network (repeat the option). \\[default: 1]",
         ),
     ] = None,
     n_seeds: Annotated[
-        int, typer.Option("--seeds", help="Replicates (seeds) per grid point.")
+        int,
+        typer.Option(
+            "--seeds", "--trials", "-n", help="Replicates (trials, one seed each) per grid point."
+        ),
     ] = _DEFAULTS["n_seeds"],
     seed: SeedOption = _DEFAULTS["seed"],
     name: Annotated[str, typer.Option(help="Table name in the results folder.")] = _DEFAULTS[
@@ -132,7 +135,7 @@ def sweep_command(
     as_json: JsonOption = False,
 ) -> None:
     """Run a sweep: pipelines x belt speeds x robot counts x seeds, one row per trial."""
-    from codesign_mb.studies.sweep import SweepConfig, run_sweep, stored_trials
+    from codesign_mb.studies.sweep import SweepConfig, run_sweep
 
     overrides = explicit(
         ctx,
@@ -149,25 +152,17 @@ def sweep_command(
     )
     overrides.update(_parse_param(p) for p in params or [])
     cfg = load_config(SweepConfig, config, overrides, section="sweep")
-    try:
-        result = run_sweep(
-            cfg,
-            out,
-            backend=backend,  # type: ignore[arg-type]  # validated by run_sweep
-            address=address,
-            workers=workers,
-            fresh=fresh,
-            progress=lambda it, total: track(
-                it, total=total, description=f"sweep {cfg.name}", disable=as_json
-            ),
-        )
-    except KeyboardInterrupt:
-        stored, where = stored_trials(out, cfg.name)
-        note(
-            f"interrupted: {stored} finished trials are kept in {where}; "
-            "rerun the same command to resume"
-        )
-        raise typer.Exit(code=130) from None
+    result = run_sweep(  # Ctrl-C: cli_errors says which trials are kept
+        cfg,
+        out,
+        backend=backend,  # type: ignore[arg-type]  # validated by run_sweep
+        address=address,
+        workers=workers,
+        fresh=fresh,
+        progress=lambda it, total: track(
+            it, total=total, description=f"sweep {cfg.name}", disable=as_json
+        ),
+    )
     if not as_json:
         note(
             f"{result.n_trials} trials ({result.computed} computed, {result.reused} reused); "

@@ -18,6 +18,10 @@ Writes into ``OUT``:
     The QoS timeline of one successful episode on the first plant: of the co-design row of
     ``--pipeline model-free|model-based``, else of the best row (the least average reliability
     among rows with >= 98 % success, else the most successful row).
+``.records/``
+    Every episode as it finishes (:mod:`codesign_mb.core.records`): an interrupted run (Ctrl-C
+    says how many are kept) is resumed by the same command, which computes only the missing
+    episodes and writes the same tables; ``--fresh`` recomputes them all.
 
 Each plant's reference rows (``blind``, ``oracle``, ``static`` per stack, ``random`` per
 co-design row; :mod:`codesign_mb.studies.table_refs`) follow its own rows, marked in the
@@ -45,6 +49,7 @@ import typer
 from codesign_mb.cli.common import (
     SCENARIO_HELP,
     ConfigOption,
+    FreshOption,
     JsonOption,
     OutOption,
     cli_errors,
@@ -78,7 +83,7 @@ def table_command(
             "--plant",
             help=(
                 "A plant to evaluate on (repeatable): 0.2, 0.6 or variable (0.6 m/s with "
-                "speed steps and stops), or a scenario name. Default: the pipeline's."
+                "speed steps and stops), or a scenario name. \\[default: the pipeline's]"
             ),
         ),
     ] = None,
@@ -115,12 +120,13 @@ def table_command(
             "--references/--no-references",
             help=(
                 "Add the reference rows (blind q = 0, oracle q = 1 tau = 0, static q = 1 "
-                "tau = 1 per stack; random at each co-design row's reliability). Default: "
-                "yes for a pipeline's rows, no for rows given in a config."
+                "tau = 1 per stack; random at each co-design row's reliability). \\[default: "
+                "yes for a pipeline's rows, no for rows given in a config]"
             ),
         ),
     ] = None,
     out: OutOption = Path("results/table"),
+    fresh: FreshOption = False,
     as_json: JsonOption = False,
 ) -> None:
     """Evaluate the pipeline's {controller, estimator, QoS} rows; write tab_p and figures."""
@@ -155,7 +161,10 @@ def table_command(
                 it, total=total, description=description, disable=as_json
             ),
             command="codesign " + " ".join(shlex.quote(a) for a in sys.argv[1:]),
+            fresh=fresh,
         )
+    if result.reused:
+        note(f"resumed: {result.reused} episodes reused from {out / '.records'}")
     if result.fig_lat_note:
         note(result.fig_lat_note)
     note(f"results written to {out} ({time.perf_counter() - started:.0f} s)")

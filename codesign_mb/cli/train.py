@@ -10,9 +10,10 @@ d      synthesis: estimator under the learned QoS, QoS re-trained  checkpoints/s
 =====  ==========================================================  ===========================
 
 Outputs go under ``runs/checkpoints/`` of the working directory unless ``--out`` says
-otherwise; nothing is written into the installed package's ``models`` folder (the shipped
-checkpoints are reproduced with ``--out models/checkpoints/<name>``, see
-``models/checkpoints/README.md``). A later stage reads its inputs from its config
+otherwise; the installed package's ``models`` folder (the shipped checkpoints) is written
+only with ``--overwrite`` (they are reproduced with ``--out models/checkpoints/<name>
+--overwrite`` in a source checkout, see ``models/checkpoints/README.md``). A later stage
+reads its inputs from its config
 (``checkpoints/stage_a/model.zip`` etc.: the working directory, then the shipped ones), so
 chaining fresh runs means passing their paths, e.g.
 ``--set controller.checkpoint=runs/checkpoints/stage_a/model.zip``. The work folder
@@ -41,7 +42,7 @@ from codesign_mb.cli.common import (
     track,
 )
 
-__all__ = ["register", "train"]
+__all__ = ["refuse_package_models", "register", "train"]
 
 STAGES = ("a", "b", "c", "d")
 RUNS = Path("runs")
@@ -126,6 +127,9 @@ def stage_config(
         if estimator in ("none", "predictor"):
             overrides["estimator.checkpoint"] = None
     cfg: Any = load_config(_config_class(stage), config_file, {}, section=stage)
+    if stage == "a" and steps is not None:  # the warm-up's SAC updates count against --steps
+        for key in ("critic_warmup_steps", "actor_freeze_steps"):
+            overrides.setdefault(key, min(getattr(cfg, key), steps))
     return _apply(cfg, overrides) if overrides else cfg
 
 
@@ -173,15 +177,25 @@ def train(
     config: ConfigOption = None,
     steps: Annotated[
         int | None,
-        typer.Option("--steps", help="Total env steps (stages a, c, d); overrides the config."),
+        typer.Option(
+            "--steps",
+            help="SAC env steps (total_steps; stage d: qos.total_steps), over the config's. "
+            "Stage a: also caps the critic warm-up's updates (critic_warmup_steps, "
+            "actor_freeze_steps); not capped: the demonstrations (demo_episodes), the "
+            "evaluations (eval_episodes, final_eval_episodes); --set those. "
+            "\\[default: the config's: a 20000, c 40000, d 20000]",
+        ),
     ] = None,
-    seed: Annotated[int | None, typer.Option("--seed", help="Root seed.")] = None,
+    seed: Annotated[
+        int | None, typer.Option("--seed", help="Root seed. \\[default: the config's, 0]")
+    ] = None,
     estimator: Annotated[
         str | None,
         typer.Option(
             "--estimator",
             help="Stage c: the estimator kind the QoS policy is learned for "
-            "(mlp, lstm, none, predictor); its checkpoint comes from the config.",
+            "(mlp, lstm, none, predictor); its checkpoint comes from the config. "
+            "\\[default: the config's, mlp]",
         ),
     ] = None,
     scenario: Annotated[
@@ -206,8 +220,8 @@ def train(
         typer.Option(
             "--out",
             "-o",
-            help="Output (checkpoint) folder (default runs/checkpoints/<name>; the shipped "
-            "ones: models/checkpoints/<name>).",
+            help="Output (checkpoint) folder (the shipped ones: models/checkpoints/<name>). "
+            "\\[default: runs/checkpoints/<name>]",
             file_okay=False,
         ),
     ] = None,
@@ -215,12 +229,20 @@ def train(
         Path | None,
         typer.Option(
             "--work-dir",
-            help="Work folder for resume (default runs/train/<name>).",
+            help="Work folder for resume. \\[default: runs/train/<name>]",
             file_okay=False,
         ),
     ] = None,
     resume: Annotated[
         bool, typer.Option("--resume", help="Continue from the work folder's checkpoint.")
+    ] = False,
+    overwrite: Annotated[
+        bool,
+        typer.Option(
+            "--overwrite",
+            help="Allow --out or --work-dir inside the installed package's models folder "
+            "(replacing a shipped checkpoint).",
+        ),
     ] = False,
     as_json: JsonOption = False,
 ) -> None:
@@ -238,19 +260,48 @@ def train(
         scenario=scenario,
     )
     out_dir = out or default_out(stage, cfg)
-    result = run_stage(
-        stage,
-        cfg,
-        out_dir=out_dir,
-        work_dir=work_dir or RUNS / "train" / out_dir.name,
-        resume=resume,
-        progress=lambda it, total=None, description="": track(
-            it, total=total, description=description, disable=as_json
-        ),
-        command="codesign " + " ".join(shlex.quote(a) for a in sys.argv[1:]),
-    )
+    work = work_dir or RUNS / "train" / out_dir.name
+    if not overwrite:
+        refuse_package_models(("--out", out_dir), ("--work-dir", work))
+    try:
+        result = run_stage(
+            stage,
+            cfg,
+            out_dir=out_dir,
+            work_dir=work,
+            resume=resume,
+            progress=lambda it, total=None, description="": track(
+                it, total=total, description=description, disable=as_json
+            ),
+            command="codesign " + " ".join(shlex.quote(a) for a in sys.argv[1:]),
+        )
+    except KeyboardInterrupt:
+        raise KeyboardInterrupt(
+            f"the work folder {work} keeps what finished (SAC's last chunk, stage b's rounds); "
+            "rerun with --resume to continue from it"
+        ) from None
     note(f"stage {stage}: checkpoint written to {out_dir}")
     emit(result, as_json=as_json, title=f"stage {stage}")
+
+
+def refuse_package_models(*folders: tuple[str, Path]) -> None:
+    """``ValueError`` if a folder ``(option, path)`` is inside the package's ``models``.
+
+    The shipped checkpoints live there (:func:`~codesign_mb.core.registry.models_dir`, the
+    source tree's ``models/`` in an editable install); paths are compared resolved, so
+    ``./models/checkpoints/x`` in a source checkout and a symlink into it count too.
+    """
+    from codesign_mb.core import registry
+
+    models = registry.models_dir().resolve()
+    for option, folder in folders:
+        path = folder.expanduser().resolve()
+        if path == models or models in path.parents:
+            raise ValueError(
+                f"{option} {folder} is inside the installed package's models folder {models} "
+                "(the shipped checkpoints); pass --overwrite to write there, or choose "
+                "another folder (default: runs/)"
+            )
 
 
 def register(app: typer.Typer) -> None:

@@ -10,6 +10,7 @@ import typer
 from codesign_mb.cli.common import (
     SCENARIO_HELP,
     ConfigOption,
+    FreshOption,
     JsonOption,
     OutOption,
     SeedOption,
@@ -25,16 +26,21 @@ __all__ = ["capacity_command", "phy_table_command", "register", "trace_command"]
 
 
 def _parse_robots(text: str) -> tuple[int, ...]:
-    """``"1..8"``, ``"1,2,4,8"`` or ``"6"`` -> robot counts."""
+    """``"1..8"``, ``"1,2,4,8"`` or ``"6"`` -> robot counts (capped before a range is made)."""
+    from codesign_mb.core.config import ROBOTS_CAP, check_range
+
     text = text.strip()
     try:
         if ".." in text:
             lo, hi = (int(x) for x in text.split("..", 1))
             if lo > hi:
                 raise ValueError
+            check_range("robots", hi, cap=ROBOTS_CAP)
             return tuple(range(lo, hi + 1))
         return tuple(int(x) for x in text.split(",") if x.strip())
-    except ValueError:
+    except ValueError as exc:
+        if str(exc).startswith("robots"):
+            raise
         raise ValueError(f"robots must look like 1..8 or 1,2,4, got {text!r}") from None
 
 
@@ -55,7 +61,7 @@ def phy_table_command(
 
 def trace_command(
     out: Annotated[Path, typer.Argument(help="Instance file to write (JSON).", dir_okay=False)],
-    robots: Annotated[int, typer.Option("--robots", "-n", help="Number of robots.")] = 6,
+    robots: Annotated[int, typer.Option("--robots", help="Number of robots.")] = 6,
     steps: Annotated[int, typer.Option("--steps", help="Control steps (40 ms each).")] = 10,
     reliability: Annotated[
         float, typer.Option("--reliability", "-q", help="Requested reliability q in [0, 1].")
@@ -67,9 +73,10 @@ def trace_command(
         str, typer.Option("--channel", help="Cell preset: paper or better.")
     ] = "paper",
     seed: SeedOption = 0,
+    as_json: JsonOption = False,
 ) -> None:
     """Record a static-QoS traffic trace as an instance for ``codesign solve``."""
-    from codesign_mb.studies.fig_wifi import write_trace
+    from codesign_mb.studies.offline_lp import write_trace
 
     t = write_trace(
         out,
@@ -81,6 +88,9 @@ def trace_command(
         seed=seed,
     )
     note(f"wrote {out} ({len(t.frames)} frames, {t.horizon_ticks} ticks)")
+    if as_json:
+        summary = {"instance": str(out), "robots": t.n_stations, "frames": len(t.frames)}
+        emit({**summary, "horizon_ticks": t.horizon_ticks}, as_json=True)
 
 
 def capacity_command(
@@ -110,22 +120,27 @@ def capacity_command(
             show_default=False,
         ),
     ] = None,
-    trials: Annotated[int, typer.Option("--trials", help="Episodes per point.")] = 4,
+    trials: Annotated[int, typer.Option("--trials", "-n", help="Episodes per point.")] = 4,
     max_steps: Annotated[
-        int | None, typer.Option("--max-steps", help="Episode cap in steps (40 ms).")
+        int | None,
+        typer.Option(
+            "--max-steps", help="Episode cap in steps (40 ms). \\[default: the plant's horizon]"
+        ),
     ] = None,
     workers: Annotated[
-        int, typer.Option("--workers", "-w", help="Processes running points in parallel.")
+        int, typer.Option("--workers", "-j", "-w", help="Processes running points in parallel.")
     ] = 1,
     out: OutOption = Path("results/fig_wifi"),
     config: ConfigOption = None,
     seed: SeedOption = 0,
+    fresh: FreshOption = False,
     as_json: JsonOption = False,
 ) -> None:
     """Task success vs number of robots on one channel (Fig. 6), per pipeline x scheduler.
 
     Writes OUT/fig_wifi.parquet, .csv and .json (one row per trial) and OUT/fig_wifi.png,
-    and prints each curve with its capacity (most robots at 95 % success).
+    and prints each curve with its capacity (most robots at 95 % success). Finished trials
+    are kept in OUT/.records as they finish: rerun an interrupted command to resume it.
 
     The plant and the pipelines (controller, estimator, QoS policy) come from --stack, or
     from the config file's plant and pipelines tables (in a capacity table or at the top
@@ -159,6 +174,7 @@ def capacity_command(
         cfg,
         out,
         progress=lambda pts: track(pts, total=n_points, description="capacity", disable=as_json),
+        fresh=fresh,
     )
     if not as_json:
         note(f"results written to {files['parquet']}, {files['csv']} and {files['png']}")

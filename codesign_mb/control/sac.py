@@ -8,6 +8,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from codesign_mb.core.checkpoints import reading_checkpoint
+
 __all__ = ["SacController"]
 
 
@@ -42,7 +44,8 @@ class SacController:
             raise ValueError(
                 f"SAC checkpoint {str(path)!r} does not exist; train one with `codesign train a`"
             )
-        model = SAC.load(path, device="cpu")
+        with reading_checkpoint(path, remedy="train it again with `codesign train a`"):
+            model = SAC.load(path, device="cpu")
         return cls(model, deterministic=deterministic)
 
     def reset(self, *, seed: int | None = None) -> None:

@@ -39,10 +39,14 @@ from __future__ import annotations
 
 import importlib
 import importlib.resources
+import inspect
+import typing
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
+
+from codesign_mb.core.config import ConfigError, coerce_value, from_mapping
 
 __all__ = [
     "KINDS",
@@ -51,6 +55,7 @@ __all__ = [
     "Kind",
     "PlantSpec",
     "build",
+    "check_options",
     "create",
     "factory",
     "kinds",
@@ -111,6 +116,7 @@ class Kind:
     target: str
     takes_env: bool = False
     checkpoint_keyword: str = ""  # non-empty: a checkpoint is required and passed by this name
+    config: str = ""  # plants: the config dataclass ("module:Class") their options are
 
 
 KINDS: dict[str, dict[str, Kind]] = {
@@ -146,8 +152,14 @@ KINDS: dict[str, dict[str, Kind]] = {
         "predictor_std": Kind("codesign_mb.rollout.compose:predictor_std_feature"),
     },
     "plant": {
-        "conveyor": Kind("codesign_mb.plants.conveyor:ConveyorPickPlace.from_options"),
-        "toy": Kind("codesign_mb.plants.toy:ToyConveyor.from_options"),
+        "conveyor": Kind(
+            "codesign_mb.plants.conveyor:ConveyorPickPlace.from_options",
+            config="codesign_mb.plants.conveyor_config:ConveyorConfig",
+        ),
+        "toy": Kind(
+            "codesign_mb.plants.toy:ToyConveyor.from_options",
+            config="codesign_mb.plants.toy:ToyConveyorConfig",
+        ),
     },
     "allocator": {
         "greedy": Kind("codesign_mb.wifi.config:greedy_allocator"),
@@ -239,7 +251,60 @@ def factory(role: str, spec: ComponentSpec) -> Factory:
         kwargs[kind.checkpoint_keyword] = str(resolve_checkpoint(spec.checkpoint))
     elif spec.checkpoint:
         raise ValueError(f"{role} kind {spec.kind!r} takes no checkpoint, got {spec.checkpoint!r}")
+    check_options(
+        f"{role} kind {spec.kind!r}",
+        kind.target,
+        spec.options,
+        takes_env=kind.takes_env,
+        reserved=kind.checkpoint_keyword,
+    )
     return Factory(kind.target, kwargs, takes_env=kind.takes_env)
+
+
+def check_options(
+    what: str,
+    target: str | Any,
+    options: Mapping[str, Any],
+    *,
+    takes_env: bool = False,
+    reserved: str = "",
+) -> None:
+    """Options checked against the signature of ``target`` (a callable or its import path):
+    known names, and the types of those annotated as scalars.
+
+    The signature is the options' schema: an unknown name or a value of the wrong type is a
+    :class:`~codesign_mb.core.config.ConfigError` when the config is read, not a
+    ``TypeError`` in a worker. ``reserved`` names a keyword the caller passes itself.
+    """
+    if not options:
+        return
+    fn = resolve(target) if isinstance(target, str) else target
+    try:
+        signature = inspect.signature(fn, eval_str=True)
+    except NameError:  # an annotation imported for type checking only: names, no types
+        signature = inspect.signature(fn)
+    params = list(signature.parameters.values())[1 if takes_env else 0 :]
+    owner = getattr(fn, "__self__", None)
+    if any(p.kind is p.VAR_KEYWORD for p in params) and isinstance(owner, type):
+        # A classmethod forwarding **overrides to its class: the constructor is the schema.
+        init = inspect.signature(owner, eval_str=True).parameters.values()
+        params = [p for p in params if p.kind is not p.VAR_KEYWORD] + list(init)
+    if any(p.kind is p.VAR_KEYWORD for p in params):
+        return
+    named = {p.name: p for p in params if p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY)}
+    named.pop(reserved, None)
+    unknown = sorted(str(k) for k in options if k not in named)
+    if unknown:
+        raise ConfigError(
+            f"unknown option{'s' if len(unknown) > 1 else ''} {', '.join(map(repr, unknown))} "
+            f"of {what}; expected {'one of ' + ', '.join(sorted(named)) if named else 'none'}"
+        )
+    for name, value in options.items():
+        annotation = named[name].annotation
+        scalars = {int, float, bool, str, type(None)}
+        arms = set(typing.get_args(annotation)) or {annotation}
+        if arms <= scalars:  # float, int | None, ...: checked like a config field
+            coerce_value(annotation, value, f"options.{name} of {what}")
 
 
 def build(role: str, spec: ComponentSpec, env: Any) -> Any:
@@ -275,6 +340,8 @@ class PlantSpec:
             )
         if not isinstance(self.options, Mapping):
             raise ValueError(f"plant.options must be a table, got {self.options!r}")
+        # The options are the plant config's fields: checked now, where they are read.
+        from_mapping(resolve(KINDS["plant"][self.name].config), self.options, where="plant.options")
 
 
 def make_plant(spec: PlantSpec) -> Any:

@@ -117,7 +117,8 @@ def provenance(checkpoints: Mapping[str, str | Path] | None = None) -> dict[str,
 def atomic_write(path: str | Path, mode: str = "wb") -> Iterator[IO[Any]]:
     """Open a temporary file next to ``path``; on success fsync it and ``os.replace`` it there.
 
-    If the body raises, the temporary file is removed and ``path`` is untouched.
+    If the body raises, the temporary file is removed and ``path`` is untouched; an
+    ``OSError`` that names no file (a full disk) is raised again naming ``path``.
 
     Examples
     --------
@@ -138,9 +139,12 @@ def atomic_write(path: str | Path, mode: str = "wb") -> Iterator[IO[Any]]:
             fh.flush()
             os.fsync(fh.fileno())
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as exc:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)
+        if isinstance(exc, OSError) and exc.filename is None and exc.errno is not None:
+            # e.g. a full disk: say which file could not be written (it is left as it was)
+            raise OSError(exc.errno, exc.strerror or str(exc), str(path)) from exc
         raise
     _fsync_dir(path.parent)
 
@@ -316,9 +320,22 @@ class ResultsDir:
         return pd.read_parquet(self.path / f"{name}.parquet")
 
     def meta(self, name: str) -> dict[str, Any]:
-        """The metadata of ``name``: version, created, config, extra, columns, n_rows."""
+        """The metadata of ``name``: version, created, config, extra, columns, n_rows.
+
+        A file that is not a JSON object with a ``config`` is a ``ValueError`` naming it.
+        """
         self._require(name)
-        return json.loads((self.path / f"{name}.json").read_text())
+        path = self.path / f"{name}.json"
+        try:
+            meta = json.loads(path.read_text())
+        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+            raise ValueError(f"results file {str(path)!r} is not valid JSON: {exc}") from None
+        if not isinstance(meta, dict) or "config" not in meta:
+            raise ValueError(
+                f"results file {str(path)!r} must hold a JSON object with a 'config', "
+                f"got {type(meta).__name__}{' without config' if isinstance(meta, dict) else ''}"
+            )
+        return meta
 
     def config(self, name: str) -> Any:
         """The config stored with ``name`` (plain JSON types)."""

@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from codesign_mb.core.config import EPISODES_CAP, SEED_CAP, check_range
+
 __all__ = ["SEED_SETS", "episode_seeds", "seed_set"]
 
 SEED_SETS: dict[str, int] = {"test": 0, "dev": 1_000_003}
@@ -27,5 +29,7 @@ def episode_seeds(seed: int, trials: int) -> list[int]:
         raise ValueError(f"trials must be an integer >= 1, got {trials!r}")
     if isinstance(seed, bool) or int(seed) != seed or seed < 0:
         raise ValueError(f"seed must be a non-negative integer, got {seed!r}")
+    check_range("trials", trials, cap=EPISODES_CAP)
+    check_range("seed", seed, cap=SEED_CAP)
     children = np.random.SeedSequence(int(seed)).spawn(int(trials))
     return [int(c.generate_state(1, dtype=np.uint32)[0]) for c in children]

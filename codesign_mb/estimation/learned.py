@@ -32,6 +32,7 @@ import torch
 from numpy.typing import NDArray
 from torch import nn
 
+from codesign_mb.core.checkpoints import reading_checkpoint
 from codesign_mb.core.results import atomic_write
 
 __all__ = [
@@ -309,20 +310,21 @@ def load_estimator(path: str | Path) -> LearnedEstimator:
         raise ValueError(
             f"estimator checkpoint {str(path)!r} does not exist; train one with `codesign train b`"
         )
-    blob = torch.load(path, map_location="cpu", weights_only=True)
-    kind = blob.get("kind")
-    if kind not in _KINDS:
-        raise ValueError(f"{str(path)!r} holds an unknown estimator kind {kind!r}")
-    features = EstimatorFeatures(**blob["features"])
-    cls = _KINDS[kind]
-    net_cfg = blob["net"]
-    if cls is MlpEstimator:
-        net: nn.Module = MlpEstimatorNet(
-            features.in_dim, features.remote_dim, tuple(net_cfg["hidden"])
-        )
-    else:
-        net = LstmEstimatorNet(
-            features.in_dim, features.remote_dim, net_cfg["hidden"], net_cfg["layers"]
-        )
-    net.load_state_dict(blob["state_dict"])
+    with reading_checkpoint(path, remedy="train it again with `codesign train b`"):
+        blob = torch.load(path, map_location="cpu", weights_only=True)
+        kind = blob.get("kind")
+        if kind not in _KINDS:
+            raise ValueError(f"it holds an unknown estimator kind {kind!r}")
+        features = EstimatorFeatures(**blob["features"])
+        cls = _KINDS[kind]
+        net_cfg = blob["net"]
+        if cls is MlpEstimator:
+            net: nn.Module = MlpEstimatorNet(
+                features.in_dim, features.remote_dim, tuple(net_cfg["hidden"])
+            )
+        else:
+            net = LstmEstimatorNet(
+                features.in_dim, features.remote_dim, net_cfg["hidden"], net_cfg["layers"]
+            )
+        net.load_state_dict(blob["state_dict"])
     return cls(net, features)

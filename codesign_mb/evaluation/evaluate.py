@@ -12,6 +12,9 @@ same whatever the number of worker processes, except the wall-time columns
 
 Episodes run in the one process pool (:mod:`codesign_mb.evaluation.pool`); a script calling
 :func:`evaluate` with ``workers > 1`` needs the usual ``if __name__ == "__main__":`` guard.
+With a :class:`~codesign_mb.core.records.RecordStore` (``store=``), every episode is kept as
+it finishes, keyed by everything that determines it, and a rerun takes the kept ones instead
+of running them (:func:`run_jobs`): an interrupted evaluation resumes to the same table.
 
 Components are given either as instances (pickled into each worker and reset per episode)
 or as picklable factories, called once per worker as ``factory(env)`` (``env`` is the plant,
@@ -36,7 +39,8 @@ import pandas as pd
 from codesign_mb.adaptation.base import StaticQos
 from codesign_mb.control.mpc import MpcConfig
 from codesign_mb.core import registry
-from codesign_mb.core.config import from_mapping
+from codesign_mb.core.config import STEPS_CAP, WORKERS_CAP, check_range, from_mapping
+from codesign_mb.core.records import RecordStore, digest
 from codesign_mb.core.registry import ComponentSpec, Factory
 from codesign_mb.core.seeds import episode_seeds
 from codesign_mb.core.stats import wilson_interval
@@ -276,33 +280,62 @@ def run_jobs(
     link: Any = None,
     workers: int | None = None,
     max_steps: int | None = None,
+    store: RecordStore | None = None,
 ) -> Iterator[tuple[int, dict[str, Any]]]:
     """Run several evaluations in one process pool, yielding ``(job index, row)`` as done.
 
     Each job is ``(controller, estimator, qos_policy, env_config, trials, seed)`` as in
     :func:`evaluate`; all episodes of all jobs share the pool (e.g. the points of a figure).
+    With a ``store`` (:class:`~codesign_mb.core.records.RecordStore`), episodes it holds are
+    yielded first without running them, and every other one is stored as it finishes, keyed
+    by its job's components, plant, link, step cap and root seed, and its index and seed.
     """
     payloads: list[bytes] = []
     tasks: list[tuple[int, int, int]] = []
+    groups: list[str] = []
     for j, (controller, estimator, qos_policy, env_config, trials, seed) in enumerate(jobs):
         if qos_policy is None:
             qos_policy = StaticQos()
         job = _Job(controller, estimator, qos_policy, env_config, link, max_steps)
         payloads.append(pickle.dumps(job))  # fails early, here, on an unpicklable component
         tasks.extend((j, i, s) for i, s in enumerate(episode_seeds(seed, trials)))
+        if store is not None:
+            groups.append(digest({"episodes of": job, "seed": seed}))
+    if store is not None:
+        kept: dict[tuple[int, int, int], dict[str, Any]] = {}
+        for group in dict.fromkeys(groups):
+            mine: dict[str, list[tuple[int, int, int]]] = {}
+            for j, i, s in tasks:
+                if groups[j] == group:
+                    mine.setdefault(f"{i}:{s}", []).append((j, i, s))
+            for item, row in store.take(group, mine).items():
+                kept.update((task, row) for task in mine[item])
+        for (j, _, _), row in kept.items():
+            yield j, row
+        tasks = [t for t in tasks if t not in kept]
+    for j, i, s, row in _run_tasks(tasks, payloads, workers):
+        yield j, row if store is None else store.add(groups[j], f"{i}:{s}", row)
+
+
+def _run_tasks(
+    tasks: list[tuple[int, int, int]], payloads: list[bytes], workers: int | None
+) -> Iterator[tuple[int, int, int, dict[str, Any]]]:
+    """``(job, episode, seed, row)`` of every task ``(job, episode, seed)``, as each finishes."""
+    if not tasks:
+        return
     if pool.check_workers(workers, len(tasks)) == 1:  # in this process, fresh components
         runners: dict[int, _Runner] = {}
         for j, i, s in tasks:
             if j not in runners:
                 runners.clear()
                 runners[j] = _Runner(pickle.loads(payloads[j]))
-            yield j, runners[j].run(i, s)
+            yield j, i, s, runners[j].run(i, s)
         return
     stream = pool.imap(
         _run_episode, tasks, workers=workers, initializer=_load_payloads, initargs=(payloads,)
     )
-    for _, result in stream:
-        yield result
+    for k, (j, row) in stream:
+        yield j, tasks[k][1], tasks[k][2], row
 
 
 def iter_episodes(
@@ -316,10 +349,11 @@ def iter_episodes(
     link: Any = None,
     workers: int | None = None,
     max_steps: int | None = None,
+    store: RecordStore | None = None,
 ) -> Iterator[dict[str, Any]]:
     """Run the episodes of :func:`evaluate`, yielding each row as it completes (any order)."""
     job = (controller, estimator, qos_policy, env_config, trials, seed)
-    for _, row in run_jobs([job], link=link, workers=workers, max_steps=max_steps):
+    for _, row in run_jobs([job], link=link, workers=workers, max_steps=max_steps, store=store):
         yield row
 
 
@@ -340,6 +374,7 @@ def evaluate(
     workers: int | None = None,
     max_steps: int | None = None,
     progress: Callable[[int, int], None] | None = None,
+    store: RecordStore | None = None,
 ) -> pd.DataFrame:
     """Run ``trials`` seeded episodes in parallel and return one row per episode.
 
@@ -365,6 +400,9 @@ def evaluate(
         Cap on an episode's steps (default: the plant's own horizon).
     progress:
         Called as ``progress(done, trials)`` after each episode.
+    store:
+        Keeps every finished episode and gives back those of an earlier run
+        (:class:`~codesign_mb.core.records.RecordStore`, :func:`run_jobs`).
 
     Returns
     -------
@@ -396,6 +434,7 @@ def evaluate(
         link=link,
         workers=workers,
         max_steps=max_steps,
+        store=store,
     ):
         rows.append(row)
         if progress is not None:
@@ -479,6 +518,9 @@ class EvaluateConfig:
         for name in ("env", "mpc", "predictor"):
             if not isinstance(getattr(self, name), Mapping):
                 raise ValueError(f"{name} must be a table of options, got {getattr(self, name)!r}")
+        check_range("workers", self.workers, cap=WORKERS_CAP)
+        check_range("max_steps", self.max_steps, cap=STEPS_CAP)
+        self.env_config(), self.components()  # the option tables, checked when loaded
 
     def env_config(self) -> Any:
         """The plant config: the scenario's options, then :attr:`env`, :attr:`belt_speed_mps`."""
@@ -503,9 +545,13 @@ class EvaluateConfig:
 
 
 def run_config(
-    config: EvaluateConfig, *, progress: Callable[[int, int], None] | None = None
+    config: EvaluateConfig,
+    *,
+    progress: Callable[[int, int], None] | None = None,
+    store: RecordStore | None = None,
 ) -> tuple[pd.DataFrame, dict[str, Any]]:
-    """Run :func:`evaluate` as ``config`` says; return the table and its :func:`summarize`."""
+    """Run :func:`evaluate` as ``config`` says (keeping episodes in ``store``); return the
+    table and its :func:`summarize`."""
     controller, estimator, qos = config.components()
     table = evaluate(
         controller,
@@ -517,5 +563,6 @@ def run_config(
         workers=config.workers,
         max_steps=config.max_steps,
         progress=progress,
+        store=store,
     )
     return table, summarize(table)

@@ -5,15 +5,23 @@ torch and Ray do, is unsafe), run one BLAS/OpenMP thread each (the workers alrea
 core), and end quietly on Ctrl-C (the driver reports the interruption once). A worker that
 dies (killed from outside, out of memory) costs nothing but time: tasks are pure functions of
 their arguments, so the missing ones are rerun in a fresh pool, at most ``max_restarts`` times.
-A script calling :func:`imap` with ``workers > 1`` needs the usual
+Workers never outlive their driver: on Linux each asks the kernel for ``SIGKILL`` when the
+driver dies (``prctl(PR_SET_PDEATHSIG)``; elsewhere a thread watches the parent's pid), so
+killing the driver, even with ``SIGKILL``, ends them; and a driver that stops early (an error,
+Ctrl-C, a consumer that stops reading) ends its workers at once instead of letting them finish
+their episodes. A script calling :func:`imap` with ``workers > 1`` needs the usual
 ``if __name__ == "__main__":`` guard.
 """
 
 from __future__ import annotations
 
+import ctypes
+import multiprocessing
 import os
 import signal
 import sys
+import threading
+import time
 import warnings
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
@@ -21,7 +29,7 @@ from concurrent.futures.process import BrokenProcessPool
 from multiprocessing import get_context
 from typing import Any, TypeVar
 
-__all__ = ["check_workers", "imap", "single_threaded_worker"]
+__all__ = ["check_workers", "die_with_parent", "imap", "single_threaded_worker"]
 
 T = TypeVar("T")
 R = TypeVar("R")
@@ -46,8 +54,41 @@ def _exit_interrupted(signum: int, frame: Any) -> None:
     raise SystemExit(130)
 
 
+_PR_SET_PDEATHSIG = 1  # <linux/prctl.h>
+
+
+def die_with_parent() -> None:
+    """End this process when its parent dies (a pool worker's second act).
+
+    Linux: the kernel sends ``SIGKILL`` when the thread that started this process exits
+    (``prctl(PR_SET_PDEATHSIG)``; the pool starts its workers from the thread calling
+    :func:`imap`). Elsewhere a daemon thread checks the parent's pid every second. A
+    parent already gone by then ends this process at once.
+    """
+    parent = multiprocessing.parent_process()
+    expected = parent.pid if parent is not None else os.getppid()
+    if sys.platform.startswith("linux"):
+        libc = ctypes.CDLL(None, use_errno=True)
+        if libc.prctl(_PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0) != 0:
+            _watch_parent(expected)  # not permitted (a sandbox): poll instead
+    else:
+        _watch_parent(expected)
+    if os.getppid() != expected:  # the parent died before the request took effect
+        os._exit(1)
+
+
+def _watch_parent(pid: int | None) -> None:
+    def watch() -> None:
+        while os.getppid() == pid:
+            time.sleep(1.0)
+        os._exit(1)
+
+    threading.Thread(target=watch, name="die-with-parent", daemon=True).start()
+
+
 def _init_worker(initializer: Callable[..., None] | None, initargs: tuple[Any, ...]) -> None:
     single_threaded_worker()
+    die_with_parent()
     signal.signal(signal.SIGINT, _exit_interrupted)
     if initializer is not None:
         initializer(*initargs)
@@ -111,4 +152,15 @@ def imap(
                 stacklevel=2,
             )
         finally:  # on an error or an abandoned generator, stop at once
-            pool.shutdown(wait=finished, cancel_futures=not finished)
+            _shutdown(pool, finished)
+
+
+def _shutdown(pool: ProcessPoolExecutor, finished: bool) -> None:
+    """Shut ``pool`` down; if not ``finished``, end its workers now (their results are lost
+    anyway) rather than wait, at exit, for their running tasks."""
+    # The executor's own table of its processes (Python 3.14 adds terminate_workers()).
+    processes = [] if finished else list((getattr(pool, "_processes", None) or {}).values())
+    pool.shutdown(wait=finished, cancel_futures=not finished)
+    for process in processes:
+        if process.is_alive():
+            process.terminate()

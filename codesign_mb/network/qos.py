@@ -10,6 +10,8 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 from numpy.typing import NDArray
 
+from codesign_mb.core.config import LATENCY_STEPS_CAP, check_range
+
 __all__ = ["QosCost", "QosPolicy", "QosRequest", "reliability_cost"]
 
 
@@ -22,7 +24,8 @@ class QosRequest:
     reliability:
         Delivery probability ``q`` in [0, 1] (``eq_d``); 0 means "do not send".
     latency_steps:
-        Delivery latency ``tau`` in control steps (>= 0); the packet stamped ``t`` arrives at
+        Delivery latency ``tau`` in control steps (>= 0, capped at
+        :data:`~codesign_mb.core.config.LATENCY_STEPS_CAP`); the packet stamped ``t`` arrives at
         ``t + tau`` when delivered (``eq_time``).
     """
 
@@ -39,6 +42,8 @@ class QosRequest:
             raise ValueError(f"latency_steps must be an integer, got {tau!r}")
         if tau < 0:
             raise ValueError(f"latency_steps must be >= 0, got {tau!r}")
+        if tau > LATENCY_STEPS_CAP.value:  # compared first: requests are made every step
+            check_range("latency_steps", tau, cap=LATENCY_STEPS_CAP)
         object.__setattr__(self, "latency_steps", int(tau))
 
 

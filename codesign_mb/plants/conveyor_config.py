@@ -16,12 +16,17 @@ from typing import Any
 
 import numpy as np
 
+from codesign_mb.core.config import STEPS_CAP, Cap, check_range
 from codesign_mb.plants.perception import PERCEPTION_MODELS
 from codesign_mb.robot.scene import BELT_HALF_WIDTH, OBJECTS
 
 __all__ = ["BELT_PROFILES", "ConveyorConfig", "observation_layout"]
 
 BELT_PROFILES = ("constant", "variable")
+
+
+SUBSTEPS_CAP = Cap(10_000, "physics steps per control step")
+PIXELS_CAP = Cap(8_192, "pixels of a rendered frame's side")
 
 
 @dataclass(frozen=True)
@@ -213,6 +218,10 @@ class ConveyorConfig:
         integer("osc_model_period", 1)
         integer("render_width", 16)
         integer("render_height", 16)
+        check_range("horizon", self.horizon, cap=STEPS_CAP)
+        check_range("n_substeps", self.n_substeps, cap=SUBSTEPS_CAP)
+        check_range("render_width", self.render_width, cap=PIXELS_CAP)
+        check_range("render_height", self.render_height, cap=PIXELS_CAP)
 
     @property
     def control_period_s(self) -> float:

@@ -18,7 +18,7 @@ import gymnasium as gym
 import numpy as np
 from numpy.typing import NDArray
 
-from codesign_mb.core.config import from_mapping
+from codesign_mb.core.config import STEPS_CAP, check_range, from_mapping
 
 __all__ = ["ToyConveyor", "ToyConveyorConfig"]
 
@@ -43,8 +43,7 @@ class ToyConveyorConfig:
             raise ValueError(f"belt_speed_mps must be >= 0, got {self.belt_speed_mps}")
         if self.control_period_s <= 0:
             raise ValueError(f"control_period_s must be > 0, got {self.control_period_s}")
-        if self.horizon < 1:
-            raise ValueError(f"horizon must be >= 1, got {self.horizon}")
+        check_range("horizon", self.horizon, ge=1, cap=STEPS_CAP)
         if self.max_speed_mps <= 0:
             raise ValueError(f"max_speed_mps must be > 0, got {self.max_speed_mps}")
         for name in ("spawn_x_range_m", "spawn_y_range_m"):

@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 from stable_baselines3.common.callbacks import BaseCallback
 
+from codesign_mb.core.config import EPISODES_CAP
 from codesign_mb.stages.training import require_at_least
 
 __all__ = ["DualAscent", "DualAscentCallback", "feasible_score"]
@@ -115,7 +116,7 @@ class DualAscent:
     lam_max: float = 500.0
 
     def __post_init__(self) -> None:
-        require_at_least(self, 1, "every_episodes", prefix="dual.")
+        require_at_least(self, 1, "every_episodes", prefix="dual.", cap=EPISODES_CAP)
         require_at_least(self, 0, "learning_rate", prefix="dual.")
         if not 0 <= self.lam_min <= self.lam_max:
             raise ValueError(

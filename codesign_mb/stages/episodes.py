@@ -20,6 +20,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from codesign_mb.control.base import Controller
+from codesign_mb.core.config import LATENCY_STEPS_CAP, check_range
 from codesign_mb.core.registry import PlantSpec, make_plant
 from codesign_mb.core.results import atomic_write
 from codesign_mb.estimation.base import Estimator
@@ -66,6 +67,7 @@ class DelayDistribution:
                 "need 0 <= latency_low <= latency_high, got "
                 f"{self.latency_low}, {self.latency_high}"
             )
+        check_range("latency_high", self.latency_high, cap=LATENCY_STEPS_CAP)
 
 
 class RandomQos:

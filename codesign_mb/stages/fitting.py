@@ -21,7 +21,13 @@ from codesign_mb.estimation.learned import (
     MlpEstimator,
 )
 from codesign_mb.stages.episodes import EpisodeData
-from codesign_mb.stages.training import Progress, no_progress, require_at_least
+from codesign_mb.stages.training import (
+    BUFFER_CAP,
+    EPOCHS_CAP,
+    Progress,
+    no_progress,
+    require_at_least,
+)
 
 __all__ = ["EstimatorTraining", "fit_estimator", "new_estimator"]
 
@@ -37,7 +43,8 @@ class EstimatorTraining:
     weight_decay: float = 0.0
 
     def __post_init__(self) -> None:
-        require_at_least(self, 1, "epochs", "batch_size", "sequence_batch_size")
+        require_at_least(self, 1, "epochs", cap=EPOCHS_CAP)
+        require_at_least(self, 1, "batch_size", "sequence_batch_size", cap=BUFFER_CAP)
         if self.learning_rate <= 0:
             raise ValueError(f"learning_rate must be > 0, got {self.learning_rate}")
 

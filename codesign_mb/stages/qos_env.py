@@ -35,6 +35,7 @@ from numpy.typing import NDArray
 
 from codesign_mb.adaptation.learned import QosFeatures, QosInterface
 from codesign_mb.control.base import Controller
+from codesign_mb.core.config import LATENCY_STEPS_CAP, check_range
 from codesign_mb.estimation.base import Estimator
 from codesign_mb.network.link import BernoulliLink, Link
 from codesign_mb.network.qos import QosCost, QosRequest, reliability_cost
@@ -90,6 +91,8 @@ class QosEnvConfig:
             raise ValueError(f"j_max must be >= 0, got {self.j_max}")
         if self.lam < 0:
             raise ValueError(f"lam must be >= 0, got {self.lam}")
+        check_range("max_latency_steps", self.max_latency_steps, cap=LATENCY_STEPS_CAP)
+        check_range("latency_steps", self.latency_steps, cap=LATENCY_STEPS_CAP)
         QosInterface(  # validates the shared fields
             remote_dim=1,
             latency_steps=self.latency_steps,

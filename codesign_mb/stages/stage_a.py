@@ -29,6 +29,7 @@ from stable_baselines3.common.callbacks import BaseCallback, CallbackList
 from codesign_mb.adaptation.base import StaticQos
 from codesign_mb.control.base import Controller
 from codesign_mb.control.sac import SacController
+from codesign_mb.core.config import EPISODES_CAP, TRAINING_STEPS_CAP
 from codesign_mb.core.registry import ComponentSpec, PlantSpec, build, make_plant
 from codesign_mb.network.link import BernoulliLink
 from codesign_mb.network.wrapper import LinkObservationWrapper
@@ -44,6 +45,7 @@ from codesign_mb.stages.stage_a_aids import (
     scale_actor_learning_rate,
 )
 from codesign_mb.stages.training import (
+    EPOCHS_CAP,
     Progress,
     SacSpec,
     TrainingState,
@@ -152,8 +154,12 @@ class StageAConfig:
     final_eval_episodes: int = 100
 
     def __post_init__(self) -> None:
-        require_at_least(self, 1, "total_steps", "chunk_steps")
-        require_at_least(self, 0, "eval_episodes", "demo_episodes")
+        require_at_least(self, 1, "total_steps", "chunk_steps", cap=TRAINING_STEPS_CAP)
+        require_at_least(self, 0, "eval_episodes", "demo_episodes", cap=EPISODES_CAP)
+        require_at_least(
+            self, 0, "critic_warmup_steps", "actor_freeze_steps", cap=TRAINING_STEPS_CAP
+        )
+        require_at_least(self, 0, "bc_epochs", cap=EPOCHS_CAP)
         if self.demo_episodes and self.demo is None:
             raise ValueError("demo_episodes > 0 needs a demo controller (demo.kind)")
         if not 0.0 <= self.demo_random_prob <= 1.0:
@@ -170,7 +176,7 @@ class StageAConfig:
             raise ValueError("bc_epochs / critic_warmup_steps need demo_episodes > 0")
         if self.actor_lr_scale <= 0:
             raise ValueError(f"actor_lr_scale must be > 0, got {self.actor_lr_scale}")
-        require_at_least(self, 1, "final_eval_episodes")
+        require_at_least(self, 1, "final_eval_episodes", cap=EPISODES_CAP)
         if self.bc_action_std <= 0:
             raise ValueError(f"bc_action_std must be > 0, got {self.bc_action_std}")
 
@@ -205,7 +211,8 @@ _NOTES = (
     "demonstrations, critic pre-trained with SB3 SAC updates (actor frozen), then SAC; "
     "the shipped model is the best evaluation, on the dev seed set (see 'best' and "
     "curve.json). "
-    "wall_time_s counts the SAC chunks; setup_wall_time_s the rest."
+    "wall_time_s counts the SAC chunks; setup_wall_time_s the demonstrations, cloning and "
+    "critic warm-up; the command's total_wall_time_s everything of this session."
 )
 
 
@@ -259,7 +266,13 @@ def train_stage_a(
         notes=_NOTES,
     )
     env.close()
-    return {"env_steps": state.steps_done, "wall_time_s": state.wall_time_s, **final}
+    total = round(time.perf_counter() - launched, 1)  # setup, SAC, final evaluation: all of it
+    return {
+        "env_steps": state.steps_done,
+        "wall_time_s": state.wall_time_s,
+        "total_wall_time_s": total,
+        **final,
+    }
 
 
 def _shaped(config: StageAConfig, env: gym.Env) -> gym.Env:

@@ -27,7 +27,7 @@ from pathlib import Path
 from typing import Any
 
 from codesign_mb.control.base import Controller
-from codesign_mb.core.config import to_mapping
+from codesign_mb.core.config import EPISODES_CAP, check_range, to_mapping
 from codesign_mb.core.registry import ComponentSpec, PlantSpec, build, make_plant
 from codesign_mb.core.results import package_version
 from codesign_mb.estimation.base import Estimator
@@ -43,7 +43,13 @@ from codesign_mb.stages.episodes import (
 )
 from codesign_mb.stages.fitting import EstimatorTraining, fit_estimator, new_estimator
 from codesign_mb.stages.paths import portable_paths
-from codesign_mb.stages.training import Progress, no_progress, require_at_least, write_json
+from codesign_mb.stages.training import (
+    WIDTH_CAP,
+    Progress,
+    no_progress,
+    require_at_least,
+    write_json,
+)
 
 __all__ = ["StageBConfig", "train_stage_b"]
 
@@ -103,8 +109,10 @@ class StageBConfig:
             raise ValueError(
                 f"kinds must be a non-empty subset of ('mlp', 'lstm'), got {self.kinds}"
             )
-        require_at_least(self, 1, "train_episodes", "val_episodes")
-        require_at_least(self, 0, "dagger_rounds", "dagger_episodes")
+        require_at_least(self, 1, "train_episodes", "val_episodes", cap=EPISODES_CAP)
+        require_at_least(self, 0, "dagger_rounds", "dagger_episodes", cap=EPISODES_CAP)
+        check_range("mlp_hidden", self.mlp_hidden, ge=1, cap=WIDTH_CAP)
+        check_range("lstm_hidden", self.lstm_hidden, ge=1, cap=WIDTH_CAP)
         object.__setattr__(
             self,
             "compare",

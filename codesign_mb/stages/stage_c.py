@@ -20,6 +20,8 @@ from typing import Any
 from stable_baselines3 import SAC
 
 from codesign_mb.adaptation.learned import LearnedQosPolicy, make_features
+from codesign_mb.core.checkpoints import reading_checkpoint
+from codesign_mb.core.config import EPISODES_CAP, TRAINING_STEPS_CAP
 from codesign_mb.core.registry import (
     ComponentSpec,
     PlantSpec,
@@ -114,8 +116,8 @@ class StageCConfig:
     seed: int = 0
 
     def __post_init__(self) -> None:
-        require_at_least(self, 1, "total_steps", "chunk_steps")
-        require_at_least(self, 0, "eval_episodes")
+        require_at_least(self, 1, "total_steps", "chunk_steps", cap=TRAINING_STEPS_CAP)
+        require_at_least(self, 0, "eval_episodes", cap=EPISODES_CAP)
         if not 0.0 <= self.target_success <= 1.0:
             raise ValueError(f"target_success must be in [0, 1], got {self.target_success}")
 
@@ -312,8 +314,9 @@ def warm_start_multiplier(policy_dir: str | Path, *, default: float) -> float:
     path = Path(policy_dir) / "training.json"
     if not path.is_file():
         return float(default)
-    meta = json.loads(path.read_text())
-    return float((meta.get("shipped") or {}).get("lambda", meta.get("lambda", default)))
+    with reading_checkpoint(path, remedy="train it again with `codesign train c`"):
+        meta = json.loads(path.read_text())
+        return float((meta.get("shipped") or {}).get("lambda", meta.get("lambda", default)))
 
 
 def _spec_json(spec: ComponentSpec) -> dict[str, Any]:

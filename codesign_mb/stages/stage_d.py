@@ -24,7 +24,7 @@ from typing import Any
 
 from codesign_mb.adaptation.learned import LearnedQosPolicy
 from codesign_mb.control.base import Controller
-from codesign_mb.core.config import to_mapping
+from codesign_mb.core.config import EPISODES_CAP, to_mapping
 from codesign_mb.core.registry import (
     ComponentSpec,
     PlantSpec,
@@ -114,8 +114,8 @@ class StageDConfig:
             )
         if not self.estimator.checkpoint:
             raise ValueError("stage D needs estimator.checkpoint (the stage-B estimator)")
-        require_at_least(self, 1, "episodes", "val_episodes")
-        require_at_least(self, 0, "mix_episodes")
+        require_at_least(self, 1, "episodes", "val_episodes", cap=EPISODES_CAP)
+        require_at_least(self, 0, "mix_episodes", cap=EPISODES_CAP)
 
 
 def train_stage_d(

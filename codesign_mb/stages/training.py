@@ -29,7 +29,8 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from codesign_mb.core.config import to_mapping
+from codesign_mb.core.checkpoints import reading_checkpoint
+from codesign_mb.core.config import TRAINING_STEPS_CAP, Cap, check_range, to_mapping
 from codesign_mb.core.results import atomic_write, package_version, to_jsonable
 from codesign_mb.core.seeds import episode_seeds, seed_set
 from codesign_mb.stages.paths import portable_paths
@@ -62,15 +63,21 @@ def no_progress(
     yield from iterable
 
 
-def require_at_least(config: Any, minimum: float, *names: str, prefix: str = "") -> None:
-    """Raise ``ValueError`` naming the first field of ``config`` in ``names`` below ``minimum``.
+def require_at_least(
+    config: Any, minimum: float, *names: str, prefix: str = "", cap: Cap | None = None
+) -> None:
+    """Raise ``ValueError`` naming the first field of ``config`` in ``names`` below ``minimum``
+    (or above ``cap``).
 
     The stages' configs validate their counts with it: "total_steps must be >= 1, got 0".
     """
     for name in names:
-        value = getattr(config, name)
-        if value < minimum:
-            raise ValueError(f"{prefix}{name} must be >= {minimum}, got {value}")
+        check_range(f"{prefix}{name}", getattr(config, name), ge=minimum, cap=cap)
+
+
+EPOCHS_CAP = Cap(100_000, "training epochs")
+WIDTH_CAP = Cap(4_096, "units of a network layer")
+BUFFER_CAP = Cap(10_000_000, "transitions of a replay buffer")
 
 
 def stage_seeds(seed: int, n: int) -> list[int]:
@@ -109,8 +116,11 @@ class SacSpec:
     ent_coef: str = "auto"
 
     def __post_init__(self) -> None:
-        require_at_least(self, 1, "buffer_size", "batch_size", "train_freq", prefix="sac.")
-        require_at_least(self, 0, "learning_starts", prefix="sac.")
+        require_at_least(self, 1, "buffer_size", "batch_size", prefix="sac.", cap=BUFFER_CAP)
+        require_at_least(self, 1, "train_freq", prefix="sac.", cap=TRAINING_STEPS_CAP)
+        require_at_least(self, 0, "learning_starts", prefix="sac.", cap=TRAINING_STEPS_CAP)
+        check_range("sac.gradient_steps", self.gradient_steps, cap=EPOCHS_CAP)
+        check_range("sac.net_arch", self.net_arch, cap=WIDTH_CAP)
         if self.gradient_steps == 0 or self.gradient_steps < -1:
             raise ValueError(f"sac.gradient_steps must be >= 1 or -1, got {self.gradient_steps}")
         if not 0 < self.gamma <= 1:
@@ -187,13 +197,16 @@ def write_json(path: str | Path, data: Any) -> None:
         fh.write("\n")
 
 
+_WORK_REMEDY = "delete the work folder, or train without --resume"
+
+
 def load_state(work_dir: str | Path) -> TrainingState | None:
     """The state of a previous run in ``work_dir``, or ``None``."""
     path = Path(work_dir) / "state.json"
     if not path.is_file():
         return None
-    data = json.loads(path.read_text())
-    return TrainingState(**data)
+    with reading_checkpoint(path, remedy=_WORK_REMEDY):
+        return TrainingState(**json.loads(path.read_text()))
 
 
 def _save_model(model: Any, path: Path) -> None:
@@ -219,10 +232,12 @@ def resume_sac(work_dir: str | Path, env: gym.Env) -> Any | None:
     if not model_path.is_file():
         return None
     torch.set_num_threads(1)
-    model = SAC.load(model_path, env=env, device="cpu")
+    with reading_checkpoint(model_path, remedy=_WORK_REMEDY):
+        model = SAC.load(model_path, env=env, device="cpu")
     buffer_path = work_dir / "replay_buffer.pkl"
     if buffer_path.is_file():
-        model.load_replay_buffer(buffer_path)
+        with reading_checkpoint(buffer_path, remedy=_WORK_REMEDY):
+            model.load_replay_buffer(buffer_path)
     return model
 
 

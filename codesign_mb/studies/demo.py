@@ -19,6 +19,14 @@ from typing import Any
 import numpy as np
 
 from codesign_mb.adaptation.base import StaticQos
+from codesign_mb.core.config import (
+    EPISODES_CAP,
+    LATENCY_STEPS_CAP,
+    SEED_CAP,
+    STEPS_CAP,
+    WORKERS_CAP,
+    check_range,
+)
 from codesign_mb.core.registry import ComponentSpec, factory
 from codesign_mb.estimation.kalman import critical_arrival_lower_bound
 from codesign_mb.evaluation.evaluate import rows_to_table, run_jobs, summarize
@@ -53,12 +61,9 @@ def _check_episodes(cfg: Any) -> None:
         value = getattr(cfg, name)
         if isinstance(value, bool) or not isinstance(value, int):
             raise ValueError(f"{name} must be an integer, got {value!r}")
-    if cfg.latency_steps < 0:
-        raise ValueError(f"latency_steps must be >= 0, got {cfg.latency_steps}")
-    if cfg.episodes < 1:
-        raise ValueError(f"episodes must be >= 1, got {cfg.episodes}")
-    if cfg.seed < 0:
-        raise ValueError(f"seed must be >= 0, got {cfg.seed}")
+    check_range("latency_steps", cfg.latency_steps, ge=0, cap=LATENCY_STEPS_CAP)
+    check_range("episodes", cfg.episodes, ge=1, cap=EPISODES_CAP)
+    check_range("seed", cfg.seed, ge=0, cap=SEED_CAP)
 
 
 @dataclass(frozen=True)
@@ -90,6 +95,7 @@ class RobotDemoConfig:
         object.__setattr__(self, "estimators", ests)
         if self.workers is not None and (int(self.workers) != self.workers or self.workers < 1):
             raise ValueError(f"workers must be an integer >= 1, got {self.workers!r}")
+        check_range("workers", self.workers, cap=WORKERS_CAP)
 
 
 def run_robot_demo(cfg: RobotDemoConfig, *, progress: Progress | None = None) -> dict[str, Any]:
@@ -178,8 +184,7 @@ class LqgDemoConfig:
         _check_episodes(self)
         if isinstance(self.horizon, bool) or not isinstance(self.horizon, int):
             raise ValueError(f"horizon must be an integer, got {self.horizon!r}")
-        if self.horizon < 1:
-            raise ValueError(f"horizon must be >= 1, got {self.horizon}")
+        check_range("horizon", self.horizon, ge=1, cap=STEPS_CAP)
 
 
 # Initial-state spread per plant (state units: m, rad, m/s, rad/s); costs are identities.

@@ -5,7 +5,8 @@
 :func:`~codesign_mb.evaluation.evaluate.run_config`), summarises them
 (:func:`~codesign_mb.evaluation.evaluate.summarize`: success with its Wilson interval, QoS,
 age and, with an MPC, its solve times and failed solves) and writes both into a results
-folder.
+folder. Every finished episode is kept in the folder's record store as it finishes
+(:mod:`codesign_mb.core.records`), so an interrupted run resumes without recomputing.
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ from typing import Any
 
 import pandas as pd
 
+from codesign_mb.core.records import RECORDS_DIR, RecordStore
 from codesign_mb.core.results import atomic_write, to_jsonable, write_results
 from codesign_mb.evaluation.evaluate import EvaluateConfig, run_config
 
@@ -37,12 +39,15 @@ class EvaluationOutputs:
     """What :func:`run_evaluation` wrote.
 
     ``files``: ``parquet``, ``csv``, ``json`` (the per-episode table) and ``summary``
-    (``<name>_summary.json``).
+    (``<name>_summary.json``); ``computed`` and ``reused``: episodes run now and taken from
+    an earlier run's records.
     """
 
     table: pd.DataFrame
     summary: dict[str, Any]
     files: dict[str, Path] = field(default_factory=dict)
+    computed: int = 0
+    reused: int = 0
 
 
 def run_evaluation(
@@ -51,17 +56,20 @@ def run_evaluation(
     *,
     name: str = "evaluate",
     progress: Callable[[int, int], None] | None = None,
+    fresh: bool = False,
 ) -> EvaluationOutputs:
     """Run ``config``'s episodes and write ``<name>.{parquet,csv,json}`` and its summary.
 
-    ``progress(done, total)`` is called after each episode (e.g. a progress bar).
+    ``progress(done, total)`` is called after each episode (e.g. a progress bar). Finished
+    episodes are kept in ``<out_dir>/.records`` and reused by a rerun (``fresh``: none are).
     The summary is also in the table's metadata (``extra.summary``).
     """
-    table, summary = run_config(config, progress=progress)
-    files = dict(
-        write_results(out_dir, table=table, config=config, name=name, extra={"summary": summary})
-    )
+    store = RecordStore(Path(out_dir) / RECORDS_DIR, fresh=fresh)
+    with store.on_interrupt():
+        table, summary = run_config(config, progress=progress, store=store)
+    extra = {"summary": summary, "computed": store.computed, "reused": store.reused}
+    files = dict(write_results(out_dir, table=table, config=config, name=name, extra=extra))
     files["summary"] = Path(out_dir) / f"{name}_summary.json"
     with atomic_write(files["summary"], "w") as fh:
         fh.write(json.dumps(to_jsonable(summary), indent=2) + "\n")
-    return EvaluationOutputs(table, summary, files)
+    return EvaluationOutputs(table, summary, files, store.computed, store.reused)

@@ -20,6 +20,8 @@ from typing import Any
 
 import pandas as pd
 
+from codesign_mb.core.config import LATENCY_STEPS_CAP, check_range
+from codesign_mb.core.records import RECORDS_DIR, RecordStore
 from codesign_mb.core.results import write_results
 from codesign_mb.evaluation.evaluate import (
     EvaluateConfig,
@@ -103,6 +105,13 @@ class FigCnConfig:
         for e in self.estimators:
             if e not in _ESTIMATORS:
                 raise ValueError(f"estimators must be in {', '.join(_ESTIMATORS)}, got {e!r}")
+        check_range("delays", self.delays, cap=LATENCY_STEPS_CAP)
+        check_range(
+            "reliability_latency_steps",
+            self.reliability_latency_steps,
+            ge=0,
+            cap=LATENCY_STEPS_CAP,
+        )
         self.base()  # validates the shared fields (controller, trials, seed, workers)
 
     def base(self) -> EvaluateConfig:
@@ -151,8 +160,13 @@ def fig_cn_points(config: FigCnConfig) -> list[tuple[dict[str, Any], EvaluateCon
     return points
 
 
-def run_fig_cn(config: FigCnConfig, *, progress: Progress | None = None) -> pd.DataFrame:
+def run_fig_cn(
+    config: FigCnConfig, *, progress: Progress | None = None, store: RecordStore | None = None
+) -> pd.DataFrame:
     """Evaluate every point of the figure in one process pool; one row per point.
+
+    ``store`` keeps every finished episode and gives back those of an earlier run
+    (:func:`~codesign_mb.evaluation.evaluate.run_jobs`).
 
     Columns: ``sweep`` (``"delay"`` or ``"reliability"``), ``belt_speed_mps``, ``estimator``,
     ``latency_steps``, ``reliability``, then :func:`~codesign_mb.evaluation.evaluate.summarize`'s
@@ -167,7 +181,7 @@ def run_fig_cn(config: FigCnConfig, *, progress: Progress | None = None) -> pd.D
         jobs.append((controller, estimator, qos, cfg.env_config(), cfg.trials, cfg.seed))
     total = sum(cfg.trials for _, cfg in points)
     stream: Iterator[tuple[int, dict[str, Any]]] = run_jobs(
-        jobs, workers=config.workers, max_steps=config.max_steps
+        jobs, workers=config.workers, max_steps=config.max_steps, store=store
     )
     if progress is not None:
         stream = iter(progress(stream, total))
@@ -189,15 +203,22 @@ def run_fig_cn(config: FigCnConfig, *, progress: Progress | None = None) -> pd.D
 
 
 def run_fig_cn_study(
-    config: FigCnConfig, out_dir: str | Path, *, progress: Progress | None = None
+    config: FigCnConfig,
+    out_dir: str | Path,
+    *,
+    progress: Progress | None = None,
+    fresh: bool = False,
 ) -> tuple[pd.DataFrame, dict[str, Path]]:
     """Run Fig. 4 (:func:`run_fig_cn`) and write it into ``out_dir``.
 
     Writes ``fig_cn.{parquet,csv,json}`` (one row per point) and ``fig_cn.png``
     (:func:`plot_fig_cn`); returns the table and the files (``parquet``, ``csv``, ``json``,
-    ``png``).
+    ``png``). Finished episodes are kept in ``<out_dir>/.records`` and reused by a rerun
+    (``fresh``: none are).
     """
-    table = run_fig_cn(config, progress=progress)
+    store = RecordStore(Path(out_dir) / RECORDS_DIR, fresh=fresh)
+    with store.on_interrupt():
+        table = run_fig_cn(config, progress=progress, store=store)
     files = dict(write_results(out_dir, table=table, config=config, name="fig_cn"))
     files["png"] = plot_fig_cn(table, Path(out_dir) / "fig_cn.png")
     return table, files

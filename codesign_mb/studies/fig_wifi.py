@@ -46,26 +46,39 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pandas as pd
 
 from codesign_mb.adaptation.rules import AgeTriggeredQos
-from codesign_mb.core.config import from_mapping
-from codesign_mb.core.registry import ComponentSpec, PlantSpec, build, make_plant
+from codesign_mb.core.config import (
+    EPISODES_CAP,
+    ROBOTS_CAP,
+    STEPS_CAP,
+    WORKERS_CAP,
+    check_range,
+    from_mapping,
+)
+from codesign_mb.core.records import RecordStore, digest
+from codesign_mb.core.registry import (
+    ComponentSpec,
+    PlantSpec,
+    build,
+    check_options,
+    factory,
+    make_plant,
+)
 from codesign_mb.evaluation import pool
 from codesign_mb.network.wrapper import LinkObservationWrapper
 from codesign_mb.plants.scenarios import scenario_options
 from codesign_mb.rollout import rollout_shared
 from codesign_mb.rollout.compose import covariance_rule
-from codesign_mb.wifi.cell import SharedChannel, generate_trace
+from codesign_mb.wifi.cell import SharedChannel
 from codesign_mb.wifi.channel import ChannelConfig
 from codesign_mb.wifi.config import SCHEDULERS, WifiConfig
 from codesign_mb.wifi.mac import MacTiming
 from codesign_mb.wifi.phy import PhyConfig
-from codesign_mb.wifi.sim import Trace
 
 __all__ = [
     "CHANNEL_PRESETS",
@@ -78,7 +91,6 @@ __all__ = [
     "describe_channel",
     "run_capacity",
     "run_point",
-    "write_trace",
 ]
 
 
@@ -157,6 +169,12 @@ QOS_RULES: dict[str, Callable[..., Any]] = {
     "covariance_triggered": covariance_rule,
 }
 """QoS kinds known to the capacity study on top of ``pipeline.components.QOS_KINDS``."""
+
+_RULE_SIGNATURES: dict[str, tuple[Callable[..., Any], bool]] = {
+    "age_triggered": (AgeTriggeredQos, False),
+    "covariance_triggered": (covariance_rule, True),
+}
+"""What each of :data:`QOS_RULES` calls, and whether with the plant: its options' schema."""
 
 CHANNEL_PRESETS: dict[str, WifiConfig] = {
     # Poor channel: every robot at MCS 1 (QPSK 1/2) with q0 = 0.9, the long 3.2 us guard
@@ -243,6 +261,7 @@ class CapacityConfig:
             out = tuple(int(n) for n in value)
             if not out or any(n < 1 for n in out):
                 raise ValueError(f"{name} must be integers >= 1, got {value!r}")
+            check_range(name, out, cap=ROBOTS_CAP)
             return out
 
         object.__setattr__(self, "robots", counts("robots", self.robots))
@@ -253,6 +272,9 @@ class CapacityConfig:
         object.__setattr__(self, "robots_by_channel", by_channel)
         object.__setattr__(self, "channels", tuple(self.channels))
         object.__setattr__(self, "schedulers", tuple(self.schedulers))
+        for name in ("channels", "schedulers"):
+            if not getattr(self, name):
+                raise ValueError(f"{name} must name at least one, got none")
         for c in (*self.channels, *by_channel):
             if c not in CHANNEL_PRESETS:
                 raise ValueError(f"channels must be among {sorted(CHANNEL_PRESETS)}, got {c!r}")
@@ -279,6 +301,8 @@ class CapacityConfig:
             plant = PlantSpec("conveyor", scenario_options(self.scenario))
         if isinstance(plant, Mapping):
             plant = from_mapping(PlantSpec, plant, where="plant")
+        if not isinstance(plant, PlantSpec):
+            raise ValueError(f"plant must be a table (name, options), got {plant!r}")
         object.__setattr__(self, "plant", plant)
         for name in ("trials", "workers"):
             value = getattr(self, name)
@@ -288,6 +312,22 @@ class CapacityConfig:
             raise ValueError(f"max_steps must be >= 1 or None, got {self.max_steps!r}")
         if not 0.0 < self.success_target <= 1.0:
             raise ValueError(f"success_target must be in (0, 1], got {self.success_target!r}")
+        check_range("trials", self.trials, cap=EPISODES_CAP)
+        check_range("workers", self.workers, cap=WORKERS_CAP)
+        check_range("max_steps", self.max_steps, cap=STEPS_CAP)
+        robots = sum(len(self.robots_of(c)) for c in self.channels)
+        n_trials = robots * len(self.schedulers) * len(pipelines) * self.trials
+        check_range("the number of trials of the sweep", n_trials, cap=EPISODES_CAP)
+        for pipeline in pipelines.values():  # kinds, checkpoints and options, checked now
+            for role in ("controller", "estimator", "qos"):
+                spec = getattr(pipeline, role)
+                if role == "qos" and spec.kind in QOS_RULES:
+                    rule, takes_env = _RULE_SIGNATURES[spec.kind]
+                    check_options(
+                        f"qos kind {spec.kind!r}", rule, spec.options, takes_env=takes_env
+                    )
+                else:
+                    factory(role, spec)
 
     def robots_of(self, channel: str) -> tuple[int, ...]:
         """Robot counts simulated on ``channel``."""
@@ -383,31 +423,60 @@ def run_capacity(
     config: CapacityConfig,
     *,
     progress: Callable[[Iterable[Any]], Iterable[Any]] | None = None,
+    store: RecordStore | None = None,
 ) -> pd.DataFrame:
-    """Every trial of every point of the sweep, one row each (tidy), in grid order."""
+    """Every trial of every point of the sweep, one row each (tidy), in grid order.
+
+    ``store`` keeps every finished trial and gives back those of an earlier run
+    (:mod:`codesign_mb.core.records`), keyed by the plant, root seed and step cap, and by the
+    point: its channel's cell, scheduler, pipeline stack, robot count and trial.
+    """
     points = config.points()
-    if config.workers == 1:
-        results: Iterable[dict[str, Any]] = (run_point(config, **kw) for kw in points)
-        rows = list(progress(results) if progress is not None else results)
-        return pd.DataFrame(rows)
-    # Largest points first keeps both workers busy to the end; rows go back in grid order.
-    order = sorted(range(len(points)), key=lambda j: -points[j]["n_robots"])
-    stream = pool.imap(
-        _run_point_kwargs, [((config, points[j]),) for j in order], workers=config.workers
-    )
-    ordered: list[dict[str, Any]] = [{}] * len(points)
-    finished = (row for _, row in _in_grid_order(stream, order, ordered))
-    for _ in progress(finished) if progress is not None else finished:
+    rows: list[dict[str, Any] | None] = [None] * len(points)
+    group, items = "", [""] * len(points)
+    if store is not None:
+        group = digest(
+            {"trials of": config.plant, "seed": config.seed, "max_steps": config.max_steps}
+        )
+        items = [_point_key(config, point) for point in points]
+        kept = store.take(group, items)
+        rows = [kept.get(item) for item in items]
+
+    def finished() -> Iterator[dict[str, Any]]:
+        yield from (row for row in list(rows) if row is not None)
+        todo = [k for k, row in enumerate(rows) if row is None]
+        for k, row in _compute(config, points, todo):
+            done = row if store is None else store.add(group, items[k], row)
+            rows[k] = done
+            yield done
+
+    for _ in progress(finished()) if progress is not None else finished():
         pass
-    return pd.DataFrame(ordered)
+    return pd.DataFrame(rows)
 
 
-def _in_grid_order(
-    stream: Iterable[tuple[int, dict[str, Any]]], order: list[int], out: list[dict[str, Any]]
+def _point_key(config: CapacityConfig, point: Mapping[str, Any]) -> str:
+    """The key of one trial of one point: the point and what its names stand for."""
+    cell = CHANNEL_PRESETS[point["channel_name"]]
+    return digest(
+        {"point": point, "cell": cell, "pipeline": config.pipelines[point["pipeline_name"]]}
+    )
+
+
+def _compute(
+    config: CapacityConfig, points: list[dict[str, Any]], todo: list[int]
 ) -> Iterator[tuple[int, dict[str, Any]]]:
-    # Task i computed point order[i]: put its row in place, pass it on (for the progress bar).
+    """``(point index, row)`` of the points ``todo``, as each finishes."""
+    if config.workers == 1:
+        for k in todo:
+            yield k, run_point(config, **points[k])
+        return
+    # Largest points first keeps both workers busy to the end.
+    order = sorted(todo, key=lambda k: -points[k]["n_robots"])
+    stream = pool.imap(
+        _run_point_kwargs, [((config, points[k]),) for k in order], workers=config.workers
+    )
     for i, row in stream:
-        out[order[i]] = row
         yield order[i], row
 
 
@@ -449,35 +518,3 @@ def capacity_table(results: pd.DataFrame, *, success_target: float = 0.95) -> pd
 
 def _sum_or_nan(values: pd.Series) -> float:
     return float(values.sum(min_count=1))
-
-
-def write_trace(
-    out: str | Path,
-    *,
-    channel: str = "paper",
-    robots: int = 6,
-    steps: int = 10,
-    reliability: float = 1.0,
-    latency_steps: int = 1,
-    seed: int = 0,
-) -> Trace:
-    """Record a static-QoS traffic trace on a :data:`CHANNEL_PRESETS` cell and save it (JSON).
-
-    The instance is what ``codesign solve`` and the allocation LP read.
-    """
-    if channel not in CHANNEL_PRESETS:
-        raise ValueError(f"channel must be one of {sorted(CHANNEL_PRESETS)}, got {channel!r}")
-    if steps < 1 or robots < 1:
-        raise ValueError(f"steps and robots must be >= 1, got {steps} and {robots}")
-    trace = generate_trace(
-        CHANNEL_PRESETS[channel],
-        robots,
-        steps=steps,
-        reliability=reliability,
-        latency_steps=latency_steps,
-        seed=seed,
-    )
-    out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    trace.save(out)
-    return trace

@@ -14,6 +14,7 @@ from typing import Any
 import pandas as pd
 
 from codesign_mb.core.config import to_mapping
+from codesign_mb.core.records import RECORDS_DIR, RecordStore
 from codesign_mb.core.results import write_results
 from codesign_mb.studies.fig_wifi import (
     CHANNEL_PRESETS,
@@ -24,14 +25,36 @@ from codesign_mb.studies.fig_wifi import (
 )
 from codesign_mb.studies.figures import integer_ticks, new_figure, save_png
 
-__all__ = ["capacity_curves", "plot_capacity", "run_capacity_study"]
+__all__ = ["capacity_curves", "curve_styles", "plot_capacity", "run_capacity_study"]
 
-_SCHEDULER_STYLES = {
-    "greedy": ("-", "o"),
-    "convex": ("--", "s"),
-    "convex-cvxpy": (":", "^"),
-    "": ("-", "o"),
-}
+_SCHEDULER_STYLES = {"greedy": "-", "convex": "--", "convex-cvxpy": ":", "": "-"}
+"""Line style per scheduler."""
+
+_PIPELINE_MARKERS = ("o", "D", "^", "v", "s", "P")
+"""Marker per pipeline: the first filled, the others hollow and larger, so that curves that
+coincide (every pipeline at 100 % success) still show each pipeline."""
+
+_DODGE = 0.012
+"""Horizontal offset between the curves of one panel, as a share of its robot range."""
+
+
+def curve_styles(pipelines: list[str], schedulers: list[str]) -> dict[tuple[str, str], dict]:
+    """Matplotlib keywords of each (scheduler, pipeline) curve: colour and marker by
+    pipeline, line style by scheduler, and a horizontal dodge (in units of the x range)."""
+    styles = {}
+    n = len(pipelines) * len(schedulers)
+    for i, pipeline in enumerate(pipelines):
+        for j, scheduler in enumerate(schedulers):
+            k = i * len(schedulers) + j
+            styles[(scheduler, pipeline)] = {
+                "ls": _SCHEDULER_STYLES.get(scheduler, "-."),
+                "marker": _PIPELINE_MARKERS[i % len(_PIPELINE_MARKERS)],
+                "markersize": 5 + 2 * i,
+                "markerfacecolor": None if i == 0 else "none",
+                "color": f"C{i % 10}",
+                "dodge": (k - (n - 1) / 2) * _DODGE,
+            }
+    return styles
 
 
 def capacity_curves(results: pd.DataFrame, *, success_target: float = 0.95) -> pd.DataFrame:
@@ -61,9 +84,11 @@ def plot_capacity(
 ) -> Path:
     """Fig. 6 as a PNG: per channel, success (top) and requested reliability (bottom) vs N.
 
-    One colour per pipeline (static QoS, co-design), one line style per scheduler (greedy
-    solid, convex dashed); the band is the spread of the trials' success rates (min-max), or
-    the given ``band_low`` and ``band_high`` (:func:`capacity_curves`). ``results`` has
+    One colour and marker per pipeline (static QoS filled, co-design hollow and larger), one
+    line style per scheduler (greedy solid, convex dashed), each curve shifted a little
+    sideways so that coinciding curves stay visible; the band is the spread of the trials'
+    success rates (min-max), or the given ``band_low`` and ``band_high``
+    (:func:`capacity_curves`). ``results`` has
     :func:`~codesign_mb.studies.fig_wifi.run_capacity`'s columns ``channel``, ``scheduler``,
     ``pipeline``, ``robots`` and ``success_rate``; the bottom row of panels (requested
     ``mean_reliability``, ``delivered_fraction``) is drawn when one of them is given.
@@ -71,7 +96,7 @@ def plot_capacity(
     curves = capacity_curves(results, success_target=success_target)
     channels = list(dict.fromkeys(results["channel"]))
     pipelines = list(dict.fromkeys(results["pipeline"]))
-    colours = {p: f"C{i % 10}" for i, p in enumerate(pipelines)}
+    styles = curve_styles(pipelines, [str(s) for s in dict.fromkeys(results["scheduler"])])
     bottom = any(
         c in results and results[c].notna().any()
         for c in ("mean_reliability", "delivered_fraction")
@@ -79,8 +104,10 @@ def plot_capacity(
     fig, axes = new_figure(2 if bottom else 1, len(channels), width=4.8, height=3.2, sharex="col")
     for c, channel in enumerate(channels):
         part = curves[curves["channel"] == channel]
+        span = max(float(part["robots"].max() - part["robots"].min()), 1.0) if len(part) else 1.0
         for (scheduler, pipeline), line in part.groupby(["scheduler", "pipeline"], sort=False):
-            style = (*_SCHEDULER_STYLES.get(str(scheduler), ("-.", "x")), colours[pipeline])
+            style = dict(styles[(str(scheduler), pipeline)])
+            style["dodge"] *= span
             name = ", ".join(str(v) for v in (pipeline, scheduler) if str(v))
             _curve(axes[:, c], line.sort_values("robots"), name, style, success_target)
         _channel_axes(axes[:, c], str(channel), success_target)
@@ -89,19 +116,20 @@ def plot_capacity(
 
 
 def _curve(
-    axes: Any, line: pd.DataFrame, name: str, style: tuple[str, str, str], success_target: float
+    axes: Any, line: pd.DataFrame, name: str, style: dict[str, Any], success_target: float
 ) -> None:
     """One (scheduler, pipeline) curve: success with its band on top, reliability below."""
-    ls, marker, colour = style
+    dodge = style.pop("dodge")
+    colour = style["color"]
     cap = int(line["capacity_robots"].iloc[0])
     largest = int(line["robots"].max())
     reach = f">= {cap} robots" if cap == largest else f"{cap} robots" if cap else "none"
     label = f"{name} (at {success_target:.0%}: {reach})"
-    x = line["robots"].to_numpy()
-    axes[0].plot(x, line["success_rate"], ls, marker=marker, color=colour, label=label)
+    x = line["robots"].to_numpy() + dodge
+    axes[0].plot(x, line["success_rate"], label=label, **style)
     axes[0].fill_between(x, line["band_low"], line["band_high"], color=colour, alpha=0.08, lw=0)
     if len(axes) > 1:
-        axes[1].plot(x, line["mean_reliability"], ls, marker=marker, color=colour, label=label)
+        axes[1].plot(x, line["mean_reliability"], label=label, **style)
         axes[1].plot(x, line["delivered_fraction"], ":", color=colour, alpha=0.6)
 
 
@@ -128,15 +156,19 @@ def run_capacity_study(
     out_dir: str | Path,
     *,
     progress: Callable[[Iterable[Any]], Iterable[Any]] | None = None,
+    fresh: bool = False,
 ) -> tuple[pd.DataFrame, pd.DataFrame, dict[str, Path]]:
     """Run the capacity sweep and write Fig. 6 into ``out_dir``.
 
     Writes ``fig_wifi.{parquet,csv,json}`` (one row per trial; the curves with their capacity
     in the metadata) and ``fig_wifi.png`` (:func:`plot_capacity`). Returns the trials, the
     curves (:func:`~codesign_mb.studies.fig_wifi.capacity_table`) and the files (``parquet``,
-    ``csv``, ``json``, ``png``).
+    ``csv``, ``json``, ``png``). Finished trials are kept in ``<out_dir>/.records`` and
+    reused by a rerun (``fresh``: none are).
     """
-    results = run_capacity(config, progress=progress)
+    store = RecordStore(Path(out_dir) / RECORDS_DIR, what="trial", fresh=fresh)
+    with store.on_interrupt():
+        results = run_capacity(config, progress=progress, store=store)
     curves = capacity_table(results, success_target=config.success_target)
     files = dict(
         write_results(
@@ -144,7 +176,11 @@ def run_capacity_study(
             table=results,
             config=to_mapping(config),
             name="fig_wifi",
-            extra={"curves": curves.to_dict("records")},
+            extra={
+                "curves": curves.to_dict("records"),
+                "computed": store.computed,
+                "reused": store.reused,
+            },
         )
     )
     files["png"] = plot_capacity(

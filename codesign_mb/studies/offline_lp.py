@@ -1,6 +1,7 @@
-"""The offline allocation LP on a stored instance, and the online allocators' gap to it.
+"""Instances of the offline allocation LP: recorded (``codesign wifi trace``) and solved.
 
-What ``codesign solve`` prints: the optimum of :func:`~codesign_mb.wifi.offline.offline_optimum`
+:func:`write_trace` records a static-QoS trace on a capacity-study cell as an instance file;
+what ``codesign solve`` prints: the optimum of :func:`~codesign_mb.wifi.offline.offline_optimum`
 (the most frames any scheduler delivers in time on the trace) and, optionally, what the greedy
 and convex allocators deliver when replayed on the same trace.
 """
@@ -10,10 +11,53 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+from codesign_mb.core.config import LATENCY_STEPS_CAP, ROBOTS_CAP, SEED_CAP, check_range
+from codesign_mb.network.qos import QosRequest
+from codesign_mb.studies.fig_wifi import CHANNEL_PRESETS
+from codesign_mb.wifi.cell import generate_trace
 from codesign_mb.wifi.offline import offline_optimum
-from codesign_mb.wifi.sim import Trace, replay
+from codesign_mb.wifi.sim import TRACE_CELLS_CAP, Trace, replay
 
-__all__ = ["solve_instance"]
+__all__ = ["solve_instance", "write_trace"]
+
+
+def write_trace(
+    out: str | Path,
+    *,
+    channel: str = "paper",
+    robots: int = 6,
+    steps: int = 10,
+    reliability: float = 1.0,
+    latency_steps: int = 1,
+    seed: int = 0,
+) -> Trace:
+    """Record a static-QoS traffic trace on a :data:`CHANNEL_PRESETS` cell and save it (JSON).
+
+    The instance is what ``codesign solve`` and the allocation LP read. Its size, robots x
+    ticks, is capped (:data:`~codesign_mb.wifi.sim.TRACE_CELLS_CAP`) before anything runs.
+    """
+    if channel not in CHANNEL_PRESETS:
+        raise ValueError(f"channel must be one of {sorted(CHANNEL_PRESETS)}, got {channel!r}")
+    check_range("robots", robots, ge=1, cap=ROBOTS_CAP)
+    check_range("steps", steps, ge=1)
+    check_range("latency_steps", latency_steps, ge=1, cap=LATENCY_STEPS_CAP)
+    check_range("seed", seed, ge=0, cap=SEED_CAP)
+    QosRequest(reliability, latency_steps)  # reliability in [0, 1]
+    config = CHANNEL_PRESETS[channel]
+    ticks = (steps + latency_steps) * config.traffic.period_ticks(config.mac.tick_us)
+    check_range("robots x ticks of the trace", robots * ticks, cap=TRACE_CELLS_CAP)
+    trace = generate_trace(
+        config,
+        robots,
+        steps=steps,
+        reliability=reliability,
+        latency_steps=latency_steps,
+        seed=seed,
+    )
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    trace.save(out)
+    return trace
 
 
 def solve_instance(path: str | Path, *, solver: str = "highs", compare: bool = False) -> dict:

@@ -28,20 +28,26 @@ A study's folder is complete when its ``study.json`` exists (written last: the s
 settings, the equivalent command, its wall time and provenance). A study runs into a hidden
 ``.<name>.partial`` folder that replaces its folder only when done, so an interrupted run
 leaves the previous complete folder or none. A complete folder with the same settings is
-reused (``force`` reruns it). ``OUT/paper.json`` is the manifest: every study's status
-(``ran``; ``reused``: complete with the same settings; ``kept``: not selected, complete from
-an earlier run; ``not selected``), settings, command and wall time, the
-run's total wall time and the provenance (commit, versions, SHA-256 of the checkpoints).
+reused (``force`` reruns it). Inside a study, every finished episode or trial is kept in
+the partial folder's record store (``.records``, :mod:`codesign_mb.core.records`) as it
+finishes, so a rerun after an interruption continues the study where it stopped (deleting
+``.<name>.partial`` starts it afresh); the store goes once the study is complete.
+``OUT/paper.json`` is the manifest: every study's status (``ran``; ``reused``: complete with
+the same settings; ``kept``: not selected, complete from an earlier run; ``not selected``),
+settings, command and wall time, the run's total wall time and the provenance (commit,
+versions, SHA-256 of the checkpoints).
 README's results section is rendered from this folder by :mod:`codesign_mb.studies.readme`.
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import resource
 import shutil
 import time
-from collections.abc import Callable, Iterable, Mapping
+import warnings
+from collections.abc import Callable, Iterable, Iterator, Mapping
 from dataclasses import asdict, dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
@@ -49,6 +55,8 @@ from typing import Any
 
 import pandas as pd
 
+from codesign_mb.core.config import EPISODES_CAP, WORKERS_CAP, check_range
+from codesign_mb.core.records import RECORDS_DIR
 from codesign_mb.core.registry import resolve_checkpoint
 from codesign_mb.core.results import atomic_write, provenance, to_jsonable, write_results
 from codesign_mb.core.seeds import seed_set
@@ -161,6 +169,7 @@ class PaperConfig:
                 continue
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
+            check_range(name, value, cap=WORKERS_CAP if name == "workers" else EPISODES_CAP)
         seed_set(self.seeds)  # an unknown name names the sets
         for name in ("only", "skip"):
             value = tuple(getattr(self, name))
@@ -324,11 +333,26 @@ class PaperRun:
 
 
 def read_study(folder: str | Path) -> dict[str, Any] | None:
-    """The ``study.json`` of a complete study folder, or ``None``."""
+    """The ``study.json`` of a complete study folder, or ``None``.
+
+    A ``study.json`` that does not parse is reported (``RuntimeWarning`` naming it) and its
+    study counts as not complete, so it is run again.
+    """
     path = Path(folder) / STUDY_FILE
     if not path.is_file():
         return None
-    return dict(json.loads(path.read_text()))
+    try:
+        record = json.loads(path.read_text())
+        if not isinstance(record, dict):
+            raise ValueError(f"a {type(record).__name__}, not a table")
+    except (ValueError, UnicodeDecodeError) as exc:
+        warnings.warn(
+            f"{path} is corrupt ({' '.join(str(exc).split())}); the study is run again",
+            RuntimeWarning,
+            stacklevel=2,
+        )
+        return None
+    return record
 
 
 def run_paper(
@@ -352,27 +376,44 @@ def run_paper(
     started = time.perf_counter()
     status: dict[str, str] = {}
     commit = provenance()["commit"]
-    for name in config.selected():
-        if name == "figures":
-            settings: dict[str, Any] = {"inputs": _finished_inputs(out)}
-        else:
-            settings = study_settings(name, config)
-        done = read_study(out / name)
-        if done is not None and done.get("settings") == settings and not config.force:
-            status[name] = "reused"
-            then = done.get("provenance", {}).get("commit")
-            stale = (
-                f"; made at commit {then}, now {commit}: --force reruns" if then != commit else ""
-            )
-            say(f"{name}: complete, reused ({done.get('wall_time_s', 0):.0f} s when run{stale})")
-            continue
-        seconds = _run_study(name, settings, out, config.worker_count(), wrap)
-        status[name] = "ran"
-        say(f"{name}: {seconds:.0f} s -> {out / name}")
+    with _say_what_is_kept(out):
+        for name in config.selected():
+            status[name] = _run_or_reuse(name, config, out, commit, wrap, say)
     manifest = _manifest(config, out, status, time.perf_counter() - started, command)
     with atomic_write(out / MANIFEST, "w") as fh:
         fh.write(json.dumps(manifest, indent=2, allow_nan=False) + "\n")
     return PaperRun(out, manifest, status)
+
+
+@contextlib.contextmanager
+def _say_what_is_kept(out: Path) -> Iterator[None]:
+    """On Ctrl-C: the complete studies are kept, and so is the partial one's progress."""
+    try:
+        yield
+    except KeyboardInterrupt as exc:
+        complete = [name for name in STUDIES if read_study(out / name) is not None]
+        done = f"complete studies kept in {out}: {', '.join(complete) or 'none'}"
+        inner = f"; {exc.args[0]}" if exc.args else "; rerun the same command to resume"
+        raise KeyboardInterrupt(done + inner) from None
+
+
+def _run_or_reuse(
+    name: str, config: PaperConfig, out: Path, commit: str | None, wrap: Progress, say: Log
+) -> str:
+    """Run study ``name``, or reuse its complete folder; its status (``ran``, ``reused``)."""
+    if name == "figures":
+        settings: dict[str, Any] = {"inputs": _finished_inputs(out)}
+    else:
+        settings = study_settings(name, config)
+    done = read_study(out / name)
+    if done is not None and done.get("settings") == settings and not config.force:
+        then = done.get("provenance", {}).get("commit")
+        stale = f"; made at commit {then}, now {commit}: --force reruns" if then != commit else ""
+        say(f"{name}: complete, reused ({done.get('wall_time_s', 0):.0f} s when run{stale})")
+        return "reused"
+    seconds = _run_study(name, settings, out, config.worker_count(), wrap)
+    say(f"{name}: {seconds:.0f} s -> {out / name}")
+    return "ran"
 
 
 def _finished_inputs(out: Path) -> dict[str, str]:
@@ -388,10 +429,14 @@ def _finished_inputs(out: Path) -> dict[str, str]:
 def _run_study(
     name: str, settings: dict[str, Any], out: Path, workers: int, progress: Progress
 ) -> float:
-    """Run one study into ``.<name>.partial``, write its ``study.json``, swap it into place."""
+    """Run one study into ``.<name>.partial``, write its ``study.json``, swap it into place.
+
+    The partial folder's record store (``.records``: the finished episodes of an interrupted
+    run, keyed by what determines them) is kept; anything else in it goes.
+    """
     partial, folder = out / f".{name}.partial", out / name
-    shutil.rmtree(partial, ignore_errors=True)
-    partial.mkdir(parents=True)
+    _clear_partial(partial, keep=(RECORDS_DIR,))
+    partial.mkdir(parents=True, exist_ok=True)
     started_at = datetime.now(UTC).isoformat(timespec="seconds")
     started, cpu = time.perf_counter(), _cpu_seconds()
     checkpoints: Mapping[str, Path] = {}
@@ -419,6 +464,7 @@ def _run_study(
     }
     with atomic_write(partial / STUDY_FILE, "w") as fh:
         fh.write(json.dumps(to_jsonable(record), indent=2, allow_nan=False) + "\n")
+    shutil.rmtree(partial / RECORDS_DIR, ignore_errors=True)  # done: its tables hold them
     old = out / f".{name}.old"
     shutil.rmtree(old, ignore_errors=True)
     if folder.exists():
@@ -426,6 +472,20 @@ def _run_study(
     partial.rename(folder)
     shutil.rmtree(old, ignore_errors=True)
     return seconds
+
+
+def _clear_partial(partial: Path, *, keep: tuple[str, ...]) -> None:
+    """Remove ``partial``'s files and folders but those named in ``keep``."""
+    if not partial.is_dir():
+        shutil.rmtree(partial, ignore_errors=True)
+        return
+    for entry in partial.iterdir():
+        if entry.name in keep:
+            continue
+        if entry.is_dir() and not entry.is_symlink():
+            shutil.rmtree(entry)
+        else:
+            entry.unlink()
 
 
 def _cpu_seconds() -> float:

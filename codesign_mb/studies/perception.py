@@ -30,6 +30,7 @@ import pandas as pd
 from numpy.typing import NDArray
 
 from codesign_mb.control.scripted import ScriptedPickController
+from codesign_mb.core.config import EPISODES_CAP, SEED_CAP, STEPS_CAP, check_range
 from codesign_mb.plants.camera_perception import (
     LIFTED_M,
     CameraPerception,
@@ -37,7 +38,13 @@ from codesign_mb.plants.camera_perception import (
 )
 from codesign_mb.plants.conveyor import ConveyorConfig, ConveyorPickPlace
 from codesign_mb.robot.camera import EdgeCamera
-from codesign_mb.robot.scene import BELT_HALF_LENGTH, BELT_HALF_WIDTH, BELT_SURFACE_Z, BELT_X
+from codesign_mb.robot.scene import (
+    BELT_HALF_LENGTH,
+    BELT_HALF_WIDTH,
+    BELT_SURFACE_Z,
+    BELT_X,
+    OBJECTS,
+)
 from codesign_mb.robot.simulator import home_configuration
 
 __all__ = [
@@ -271,6 +278,11 @@ def calibrate(
     progress: Callable[[int, int], None] | None = None,
 ) -> dict[str, Any]:
     """Run the camera path, fit the calibration, write it to ``out``; return its summary."""
+    check_range("sweep_frames", sweep_frames, ge=1, cap=STEPS_CAP)
+    check_range("episodes", episodes_per_speed, ge=0, cap=EPISODES_CAP)
+    check_range("seed", seed, ge=0, cap=SEED_CAP)
+    if object_kind not in OBJECTS:
+        raise ValueError(f"object must be one of {', '.join(OBJECTS)}, got {object_kind!r}")
     rows = camera_path_rows(
         seed,
         object_kind=object_kind,

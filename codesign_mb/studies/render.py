@@ -25,7 +25,7 @@ from numpy.typing import NDArray
 
 from codesign_mb.adaptation.base import StaticQos
 from codesign_mb.control.scripted import ScriptedPickController
-from codesign_mb.core.config import from_mapping
+from codesign_mb.core.config import STEPS_CAP, check_range, from_mapping
 from codesign_mb.network import BernoulliLink, LinkObservationWrapper
 from codesign_mb.plants.conveyor import ConveyorConfig, ConveyorPickPlace
 from codesign_mb.robot.camera import EDGE_CAMERA, Detection, EdgeCamera
@@ -76,6 +76,8 @@ class RenderConfig:
                 raise ValueError(f"{name} must be an integer, got {value!r}")
             if value < low:
                 raise ValueError(f"{name} must be >= {low}, got {value}")
+        check_range("steps", self.steps, cap=STEPS_CAP)
+        check_range("fps", self.fps, le=1000)
 
 
 def render_episode(

@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from codesign_mb.core.config import Cap, check_range
 from codesign_mb.core.stats import wilson_interval
 from codesign_mb.studies import fig_cn, fig_wifi_figures, sweep_figures, table_figures
 from codesign_mb.studies.figures import curve_label, curves, pipeline_label, varying
@@ -69,6 +70,9 @@ PAPER_TAB_P = pd.DataFrame(
 _PIPELINE_ORDER = {"learned": 0, "model_based": 1}
 
 
+DPI_CAP = Cap(1_200, "dots per inch of a figure")
+
+
 @dataclass(frozen=True)
 class ReportConfig:
     """Settings of ``codesign report`` (config file table ``[report]`` or top level).
@@ -93,6 +97,7 @@ class ReportConfig:
     def __post_init__(self) -> None:
         if isinstance(self.dpi, bool) or not isinstance(self.dpi, int) or not self.dpi >= 20:
             raise ValueError(f"dpi must be an integer >= 20, got {self.dpi!r}")
+        check_range("dpi", self.dpi, cap=DPI_CAP)
         if not (isinstance(self.confidence, float | int) and 0.0 < self.confidence < 1.0):
             raise ValueError(f"confidence must be in (0, 1), got {self.confidence!r}")
         if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:

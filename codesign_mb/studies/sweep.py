@@ -18,12 +18,13 @@ and robot counts are compared on the same draws.
 
 Resuming
 --------
-The driver stores each finished trial as one small JSON file
-``<out_dir>/.trials/<name>/<key>.json`` (written atomically) as soon as it returns. The key
-hashes everything the row depends on (scenario, its params, grid point, seed), so rerunning
-an interrupted sweep only computes the missing trials, and changing a parameter never reuses
-stale rows. The table is always assembled from the stored rows, in grid order, and written
-with :func:`~codesign_mb.core.results.write_results` as ``<out_dir>/<name>.*``.
+The driver stores each finished trial as soon as it returns, one line of
+``<out_dir>/.records/sweep_<name>.jsonl`` (:class:`~codesign_mb.core.records.RecordStore`,
+the store of every long run). The key of a trial hashes everything its row depends on
+(scenario, its params, grid point, seed), so rerunning an interrupted sweep only computes
+the missing trials, and changing a parameter never reuses stale rows. The table is always
+assembled from the rows as stored, in grid order, and written with
+:func:`~codesign_mb.core.results.write_results` as ``<out_dir>/<name>.*``.
 
 Scenarios
 ---------
@@ -59,6 +60,7 @@ import hashlib
 import importlib
 import json
 import os
+import re
 from collections.abc import Callable, Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -68,8 +70,17 @@ from typing import Any, Literal
 import numpy as np
 import pandas as pd
 
-from codesign_mb.core.config import from_mapping, to_mapping
-from codesign_mb.core.results import atomic_write, to_jsonable, write_results
+from codesign_mb.core.config import (
+    EPISODES_CAP,
+    ROBOTS_CAP,
+    SEED_CAP,
+    WORKERS_CAP,
+    check_range,
+    from_mapping,
+    to_mapping,
+)
+from codesign_mb.core.records import RECORDS_DIR, RecordStore
+from codesign_mb.core.results import to_jsonable, write_results
 from codesign_mb.core.seeds import episode_seeds
 from codesign_mb.evaluation import pool
 from codesign_mb.plants.scenarios import SCENARIOS as CONVEYOR_SCENARIOS
@@ -81,11 +92,9 @@ __all__ = [
     "SweepConfig",
     "SweepResult",
     "TrialConfig",
-    "TrialStore",
     "execute_trial",
     "plan_sweep",
     "run_sweep",
-    "stored_trials",
 ]
 
 Backend = Literal["serial", "local", "ray"]
@@ -111,6 +120,9 @@ GRID_COLUMNS: tuple[str, ...] = (
 """The columns every sweep row starts with (added by the sweep, not by ``run_trial``)."""
 
 Scalar = float | int | bool | str | None
+
+_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
+"""A sweep's name names its table and its records' file."""
 
 
 @dataclass(frozen=True)
@@ -211,6 +223,12 @@ class SweepConfig:
         object.__setattr__(self, "robot_counts", tuple(int(n) for n in counts))
         object.__setattr__(self, "pipelines", pipelines)
         object.__setattr__(self, "params", dict(self.params))
+        check_range("seed", self.seed, cap=SEED_CAP)
+        check_range("n_seeds", self.n_seeds, cap=EPISODES_CAP)
+        check_range("robot_counts", counts, cap=ROBOTS_CAP)
+        n_trials = len(speeds) * len(counts) * self.n_seeds * max(1, len(pipelines))
+        check_range("the number of trials of the sweep", n_trials, cap=EPISODES_CAP)
+        plan_sweep(self)  # the scenario, its pipelines and params, checked when loaded
 
 
 def _require_int(name: str, value: Any, *, minimum: int) -> None:
@@ -330,34 +348,6 @@ def execute_trial(trial: TrialConfig, seed: int) -> dict[str, Scalar]:
     return row
 
 
-# --------------------------------------------------------------------------- persistence
-
-
-class TrialStore:
-    """Finished trials of one sweep: ``<root>/<key>.json``, each written atomically."""
-
-    def __init__(self, root: str | Path) -> None:
-        self.root = Path(root)
-
-    def keys(self) -> set[str]:
-        """Keys of the stored trials."""
-        if not self.root.is_dir():
-            return set()
-        return {p.stem for p in self.root.glob("*.json")}
-
-    def save(self, key: str, trial: TrialConfig, seed: int, row: Mapping[str, Scalar]) -> None:
-        record = {"key": key, "seed": seed, "trial": to_jsonable(trial), "row": dict(row)}
-        with atomic_write(self.root / f"{key}.json", "w") as fh:
-            json.dump(record, fh)
-
-    def load(self, key: str) -> dict[str, Scalar]:
-        return json.loads((self.root / f"{key}.json").read_text())["row"]
-
-    def clear(self) -> None:
-        for p in self.root.glob("*.json"):
-            p.unlink()
-
-
 # --------------------------------------------------------------------------- backends
 
 Pending = list[tuple[str, TrialConfig, int]]
@@ -402,7 +392,7 @@ def run_sweep(
     config:
         The grid.
     out_dir:
-        Results folder; finished trials are kept under ``out_dir/.trials/<name>/``.
+        Results folder; finished trials are kept in ``out_dir/.records/sweep_<name>.jsonl``.
     backend:
         ``"local"`` (process pool), ``"ray"`` or ``"serial"``.
     address:
@@ -411,7 +401,7 @@ def run_sweep(
     workers:
         Parallel trials (local pool size / local Ray CPUs); default ``os.cpu_count()``.
     fresh:
-        Forget stored trials and recompute everything.
+        Reuse no stored trial: recompute everything.
     progress:
         Wraps the stream of finished trials, e.g.
         ``lambda it, total: track(it, total=total, description="sweep")``.
@@ -428,14 +418,16 @@ def run_sweep(
         raise ValueError("address is only used with backend 'ray'")
     if workers is not None:
         _require_int("workers", workers, minimum=1)
+        check_range("workers", workers, cap=WORKERS_CAP)
+    if not _NAME.match(config.name):
+        raise ValueError(f"name must match {_NAME.pattern}, got {config.name!r}")
     plan = plan_sweep(config)
     out = Path(out_dir)
-    store = TrialStore(out / ".trials" / config.name)
-    if fresh:
-        store.clear()
+    store = RecordStore(out / RECORDS_DIR, what="trial", fresh=fresh)
+    group = f"sweep_{config.name}"
     keyed = [(trial_key(trial, seed), trial, seed) for trial, seed in plan]
-    stored = store.keys()
-    pending = [item for item in keyed if item[0] not in stored]
+    rows = store.take(group, [key for key, _, _ in keyed])
+    pending = [item for item in keyed if item[0] not in rows]
     n_workers = min(workers or os.cpu_count() or 1, max(len(pending), 1))
     if not pending:
         stream: Iterator[tuple[str, dict[str, Scalar]]] = iter(())
@@ -445,12 +437,16 @@ def run_sweep(
         stream = _iter_local(pending, n_workers)
     else:
         stream = iter_ray(execute_trial, pending, n_workers, address)
-    by_key = {key: (trial, seed) for key, trial, seed in pending}
-    iterable = progress(stream, len(pending)) if progress is not None else stream
-    for key, row in iterable:
-        trial, seed = by_key[key]
-        store.save(key, trial, seed, row)
-    table = pd.DataFrame([store.load(key) for key, _, _ in keyed])
+
+    def stored() -> Iterator[tuple[str, dict[str, Scalar]]]:
+        for key, row in stream:  # stored as soon as the driver has it
+            rows[key] = store.add(group, key, row)
+            yield key, rows[key]
+
+    with store.on_interrupt():
+        for _ in progress(stored(), len(pending)) if progress is not None else stored():
+            pass
+    table = pd.DataFrame([rows[key] for key, _, _ in keyed])
     paths = write_results(
         out,
         table=table,
@@ -462,7 +458,7 @@ def run_sweep(
             "n_trials": len(keyed),
             "computed": len(pending),
             "reused": len(keyed) - len(pending),
-            "trial_store": str(store.root.relative_to(out)),
+            "trial_store": str(store.path(group).relative_to(out)),
         },
     )
     return SweepResult(
@@ -472,9 +468,3 @@ def run_sweep(
         reused=len(keyed) - len(pending),
         backend=backend,
     )
-
-
-def stored_trials(out_dir: str | Path, name: str) -> tuple[int, Path]:
-    """How many finished trials of the sweep ``name`` are kept under ``out_dir``, and where."""
-    store = TrialStore(Path(out_dir) / ".trials" / name)
-    return len(store.keys()), store.root

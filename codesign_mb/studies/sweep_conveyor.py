@@ -54,7 +54,7 @@ from typing import Any
 
 from numpy.typing import ArrayLike
 
-from codesign_mb.core.config import from_mapping
+from codesign_mb.core.config import EPISODES_CAP, check_range, from_mapping
 from codesign_mb.core.registry import PlantSpec, factory, plant_factory
 from codesign_mb.evaluation.evaluate import evaluate, summarize
 from codesign_mb.network.link import BernoulliLink, Reception
@@ -179,8 +179,7 @@ class Params:
 
         if isinstance(self.episodes, bool) or not isinstance(self.episodes, int):
             raise ValueError(f"episodes must be an integer, got {self.episodes!r}")
-        if self.episodes < 1:
-            raise ValueError(f"episodes must be >= 1, got {self.episodes}")
+        check_range("episodes", self.episodes, ge=1, cap=EPISODES_CAP)
         if self.link not in LINKS:
             raise ValueError(f"link must be one of {', '.join(LINKS)}, got {self.link!r}")
         cap = self.capacity_robots

@@ -48,6 +48,7 @@ import pandas as pd
 
 from codesign_mb.adaptation.base import StaticQos
 from codesign_mb.control.tracking import TrackingLqr
+from codesign_mb.core.config import STEPS_CAP, check_range
 from codesign_mb.estimation.base import Estimator, PassThroughEstimator
 from codesign_mb.estimation.extrapolation import ModelExtrapolation, RemotePartEstimator
 from codesign_mb.estimation.kalman import KalmanEstimator
@@ -121,8 +122,7 @@ class Params:
         QosRequest(self.reliability, self.latency_steps)  # validates q and tau
         if isinstance(self.horizon_steps, bool) or not isinstance(self.horizon_steps, int):
             raise ValueError(f"horizon_steps must be an integer, got {self.horizon_steps!r}")
-        if self.horizon_steps < 1:
-            raise ValueError(f"horizon_steps must be >= 1, got {self.horizon_steps}")
+        check_range("horizon_steps", self.horizon_steps, ge=1, cap=STEPS_CAP)
         window = self.grasp_window_steps
         if isinstance(window, bool) or not isinstance(window, int) or window < 1:
             raise ValueError(f"grasp_window_steps must be an integer >= 1, got {window!r}")

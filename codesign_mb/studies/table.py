@@ -86,7 +86,8 @@ import numpy as np
 import pandas as pd
 from numpy.typing import ArrayLike, NDArray
 
-from codesign_mb.core.config import from_mapping
+from codesign_mb.core.config import EPISODES_CAP, SEED_CAP, WORKERS_CAP, check_range, from_mapping
+from codesign_mb.core.records import RecordStore
 from codesign_mb.core.registry import ComponentSpec, PlantSpec, build, make_plant, plant_factory
 from codesign_mb.evaluation.evaluate import rows_to_table, run_jobs
 from codesign_mb.network.link import BernoulliLink
@@ -193,6 +194,9 @@ class TableConfig:
             raise ValueError(f"trials must be >= 1, got {self.trials}")
         if self.workers < 1:
             raise ValueError(f"workers must be >= 1, got {self.workers}")
+        check_range("trials", self.trials, cap=EPISODES_CAP)
+        check_range("workers", self.workers, cap=WORKERS_CAP)
+        check_range("seed", self.seed, ge=0, cap=SEED_CAP)
         if not 0.0 <= self.best_min_success <= 1.0:
             raise ValueError(f"best_min_success must be in [0, 1], got {self.best_min_success}")
         if self.on_missing not in ("skip", "error"):
@@ -327,7 +331,10 @@ def timeline_row_name(config: TableConfig, summary: pd.DataFrame) -> str | None:
 
 
 def run_table(
-    config: TableConfig, *, progress: Callable[..., Any] | None = None
+    config: TableConfig,
+    *,
+    progress: Callable[..., Any] | None = None,
+    store: RecordStore | None = None,
 ) -> tuple[pd.DataFrame, pd.DataFrame]:
     """Evaluate every row on every plant; return the summary and all episodes.
 
@@ -338,7 +345,9 @@ def run_table(
     episodes table one row per episode, with ``plant`` and ``row``. The table's rows and the
     fixed references share one pool; the ``random`` references, which need their co-design
     row's measured reliability, a second one. ``progress`` wraps the stream of finished
-    episodes: ``progress(stream, total=..., description=...)``.
+    episodes: ``progress(stream, total=..., description=...)``. ``store`` keeps every
+    finished episode and gives back those of an earlier run
+    (:func:`~codesign_mb.evaluation.evaluate.run_jobs`).
     """
     rows, plants = config.table_rows(), config.table_plants()
     listed = [Reference(row, ROW_KIND) for row in rows]
@@ -358,10 +367,10 @@ def run_table(
     cells = [
         (p, r.row) for p in plants for r in per_plant[p.label] if (p.label, r.row.name) not in why
     ]
-    tables = _run_cells(cells, config, progress, "table episodes")
+    tables = _run_cells(cells, config, progress, "table episodes", store)
     if config.with_references():
         randoms = _random_references(rows, plants, tables, per_plant, why)
-        tables.update(_run_cells(randoms, config, progress, "random reference episodes"))
+        tables.update(_run_cells(randoms, config, progress, "random reference episodes", store))
     costs: dict[str, TrainingCost] = {}
     summaries, episodes = [], []
     for plant in plants:
@@ -466,6 +475,7 @@ def _run_cells(
     config: TableConfig,
     progress: Callable[..., Any] | None,
     description: str,
+    store: RecordStore | None,
 ) -> dict[tuple[str, str], pd.DataFrame]:
     """The episodes table of every (plant, row) cell, by ``(plant label, row name)``.
 
@@ -488,7 +498,7 @@ def _run_cells(
     ]
     results: list[list[dict[str, Any]]] = [[] for _ in jobs]
     if jobs:
-        done = run_jobs(jobs, workers=config.workers)
+        done = run_jobs(jobs, workers=config.workers, store=store)
         if progress is not None:
             done = progress(done, total=len(jobs) * config.trials, description=description)
         for j, episode in done:

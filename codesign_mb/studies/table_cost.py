@@ -18,6 +18,7 @@ import functools
 import json
 import math
 import time
+import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -112,13 +113,32 @@ def _trained_plant(spec: ComponentSpec) -> PlantSpec | None:
     except ValueError:
         return None
     meta_path = path / "training.json" if path.is_dir() else path.parent / "training.json"
-    if not meta_path.is_file():
+    meta = _training_json(meta_path)
+    if meta is None:
         return None
-    config = json.loads(meta_path.read_text()).get("config")
+    config = meta.get("config")
     plant = config.get("plant") if isinstance(config, Mapping) else None
     if not isinstance(plant, Mapping) or not isinstance(plant.get("name"), str):
         return None
     return PlantSpec(plant["name"], dict(plant.get("options") or {}))
+
+
+def _training_json(path: Path) -> dict[str, Any] | None:
+    """A checkpoint's ``training.json``; ``None`` when absent, or corrupt (with a warning)."""
+    if not path.is_file():
+        return None
+    try:
+        meta = json.loads(path.read_text())
+        if not isinstance(meta, dict):
+            raise ValueError(f"a {type(meta).__name__}, not a table")
+    except (ValueError, UnicodeDecodeError) as exc:
+        warnings.warn(
+            f"{path} is corrupt ({' '.join(str(exc).split())}); its training is not counted",
+            RuntimeWarning,
+            stacklevel=3,
+        )
+        return None
+    return meta
 
 
 def _options_key(options: Mapping[str, Any]) -> str:
@@ -180,10 +200,10 @@ def training_cost(row: RowLike) -> TrainingCost:
             unknown.append(str(checkpoint))
             continue
         meta_path = path / "training.json" if path.is_dir() else path.parent / "training.json"
-        if not meta_path.is_file():
+        meta = _training_json(meta_path)
+        if meta is None:
             unknown.append(str(checkpoint))
             continue
-        meta = json.loads(meta_path.read_text())
         section, part, label = meta, "", _display(meta_path.parent)
         sub = meta.get("estimator")
         if role == "estimator" and isinstance(sub, Mapping) and "env_steps" in sub:

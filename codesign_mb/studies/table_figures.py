@@ -13,13 +13,14 @@ import contextlib
 import math
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pandas as pd
 
+from codesign_mb.core.records import RECORDS_DIR, RecordStore
 from codesign_mb.core.registry import resolve_checkpoint
 from codesign_mb.core.results import atomic_write, to_jsonable, write_results
 from codesign_mb.evaluation.phase_metrics import SUMMARY_COLUMNS as PHASE_COLUMNS
@@ -362,6 +363,8 @@ class TableOutputs:
         ``fig_pareto.png`` and, when drawn, ``fig_lat`` and ``fig_lat.png``.
     fig_lat_note:
         Why Fig. 5 was not drawn (``None`` when it was).
+    computed, reused:
+        Episodes run now and taken from an earlier run's records (:func:`run_table_study`).
     """
 
     summary: pd.DataFrame
@@ -369,6 +372,8 @@ class TableOutputs:
     out_dir: Path
     files: dict[str, Path] = field(default_factory=dict)
     fig_lat_note: str | None = None
+    computed: int = 0
+    reused: int = 0
 
 
 def write_table_outputs(
@@ -484,16 +489,28 @@ def run_table_study(
     *,
     progress: Callable[..., Any] | None = None,
     command: str = "",
+    fresh: bool = False,
 ) -> TableOutputs:
     """Run the table (:func:`~codesign_mb.studies.table.run_table`) and write its files.
 
     Torch runs on one thread in this process (the machine is shared; the workers add the
-    parallelism). ``command`` and the run's wall time go into the tables' metadata.
+    parallelism). ``command`` and the run's wall time go into the tables' metadata. Every
+    finished episode is kept in ``<out_dir>/.records`` as it finishes
+    (:mod:`codesign_mb.core.records`): a rerun computes only the missing ones and writes the
+    same tables (``fresh``: it recomputes every episode).
     """
     import torch
 
     torch.set_num_threads(1)
     started = time.perf_counter()
-    summary, episodes = run_table(config, progress=progress)
-    extra = {"command": command, "wall_time_s": round(time.perf_counter() - started, 1)}
-    return write_table_outputs(summary, episodes, out_dir, config, extra=extra)
+    store = RecordStore(Path(out_dir) / RECORDS_DIR, fresh=fresh)
+    with store.on_interrupt():
+        summary, episodes = run_table(config, progress=progress, store=store)
+    extra = {
+        "command": command,
+        "wall_time_s": round(time.perf_counter() - started, 1),
+        "episodes_computed": store.computed,
+        "episodes_reused": store.reused,
+    }
+    outputs = write_table_outputs(summary, episodes, out_dir, config, extra=extra)
+    return replace(outputs, computed=store.computed, reused=store.reused)

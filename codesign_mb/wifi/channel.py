@@ -36,6 +36,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from codesign_mb.core.config import FloatOrInf
+
 __all__ = [
     "PER_REFERENCE_BYTES",
     "SENSITIVITY_20MHZ_DBM",
@@ -149,7 +151,7 @@ class ChannelConfig:
     extra_loss_db: float = 10.0
     distances_m: tuple[float, ...] = ()
     distance_range_m: tuple[float, float] = (5.0, 30.0)
-    rician_k_db: float | None = 6.0
+    rician_k_db: FloatOrInf | None = 6.0
     coherence_ms: float = 40.0
     per_slope_per_db: float = 2.0
     q0: float = 0.95

@@ -10,7 +10,7 @@ admitted frames form a :class:`Trace` (stored as an instance file, ``solvers/REA
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -18,12 +18,22 @@ import numpy as np
 import pandas as pd
 from numpy.typing import NDArray
 
-from codesign_mb.core.config import from_mapping, to_mapping
+from codesign_mb.core.config import (
+    ROBOTS_CAP,
+    STEPS_CAP,
+    Cap,
+    ConfigError,
+    as_matrix,
+    check_range,
+    from_mapping,
+    show,
+    to_mapping,
+)
 from codesign_mb.wifi.allocators import Allocator
 from codesign_mb.wifi.config import WifiConfig, make_allocator
 from codesign_mb.wifi.engine import ChannelEngine, FallbackCount, Frame
 
-__all__ = ["TRACE_FORMAT", "ReplayResult", "Trace", "replay"]
+__all__ = ["TRACE_CELLS_CAP", "TRACE_FORMAT", "ReplayResult", "Trace", "TraceFile", "replay"]
 
 TRACE_FORMAT = "codesign-wifi-trace/1"
 
@@ -107,37 +117,20 @@ class Trace:
         }
 
     @classmethod
-    def from_json(cls, data: dict[str, Any]) -> Trace:
-        """Parse the instance-file form; errors name the offending field."""
-        if not isinstance(data, dict) or data.get("format") != TRACE_FORMAT:
-            raise ValueError(
-                f"instance format must be {TRACE_FORMAT!r}, got {data.get('format')!r}"
-            )
-        unknown = sorted(
-            set(data) - {"format", "config", "n_stations", "horizon_ticks", "ul_bpss", "dl_bpss",
-                         "frames", "comment"}
-        )  # fmt: skip
-        if unknown:
-            raise ValueError(f"unknown keys {unknown} in the instance")
-        config = from_mapping(WifiConfig, data.get("config", {}), where="config")
-        frames = data.get("frames", {})
-        if not isinstance(frames, dict):
-            raise ValueError("frames must be a table of columns")
-        table = pd.DataFrame(
-            {c: np.asarray(frames.get(c, []), dtype=np.int64) for c in cls.COLUMNS}
+    def from_json(cls, data: Any) -> Trace:
+        """Parse the instance-file form (:class:`TraceFile`); errors name the field."""
+        spec = from_mapping(TraceFile, data, where="") if isinstance(data, dict) else None
+        if spec is None:
+            raise ConfigError(f"an instance must be a JSON object, got {show(data)}")
+        return cls(
+            config=from_mapping(WifiConfig, spec.config, where="config"),
+            horizon_ticks=spec.horizon_ticks,
+            ul_bpss=spec.ul_bpss,
+            dl_bpss=spec.dl_bpss,
+            frames=pd.DataFrame(
+                {c: np.asarray(spec.frames[c], dtype=np.int64) for c in cls.COLUMNS}
+            ),
         )
-        trace = cls(
-            config=config,
-            horizon_ticks=int(data["horizon_ticks"]),
-            ul_bpss=np.asarray(data["ul_bpss"], dtype=float),
-            dl_bpss=np.asarray(data["dl_bpss"], dtype=float),
-            frames=table,
-        )
-        if "n_stations" in data and int(data["n_stations"]) != trace.n_stations:
-            raise ValueError(
-                f"n_stations is {data['n_stations']} but ul_bpss has {trace.n_stations} rows"
-            )
-        return trace
 
     def save(self, path: str | Path) -> None:
         Path(path).write_text(json.dumps(self.to_json()) + "\n")
@@ -149,9 +142,78 @@ class Trace:
             raise ValueError(f"instance file {str(path)!r} does not exist")
         try:
             data = json.loads(path.read_text())
-        except json.JSONDecodeError as exc:
-            raise ValueError(f"instance file {str(path)!r} is not valid JSON: {exc}") from exc
-        return cls.from_json(data)
+        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+            raise ValueError(f"instance file {str(path)!r} is not valid JSON: {exc}") from None
+        try:
+            return cls.from_json(data)
+        except ValueError as exc:
+            raise ConfigError(f"{exc} (instance file {str(path)!r})") from exc
+
+
+TRACE_CELLS_CAP = Cap(4_000_000, "channel states of a trace: stations x ticks")
+
+
+@dataclass(frozen=True)
+class TraceFile:
+    """The schema of an instance file (``solvers/README.md``), checked by ``from_mapping``.
+
+    Every number finite and in range, the frame columns of equal length, each frame's
+    station one of the trace's, its deadline after its capture and within the horizon.
+    """
+
+    format: str
+    horizon_ticks: int
+    ul_bpss: Any
+    dl_bpss: Any
+    frames: dict[str, tuple[int, ...]]
+    config: dict[str, Any] = field(default_factory=dict)
+    n_stations: int | None = None
+    comment: str = ""
+
+    def __post_init__(self) -> None:
+        if self.format != TRACE_FORMAT:
+            raise ValueError(f"format must be {TRACE_FORMAT!r}, got {show(self.format)}")
+        check_range("horizon_ticks", self.horizon_ticks, ge=1, cap=STEPS_CAP)
+        ul = as_matrix("ul_bpss", self.ul_bpss)
+        dl = as_matrix("dl_bpss", self.dl_bpss, ul.shape)
+        check_range("n_stations (rows of ul_bpss)", ul.shape[0], cap=ROBOTS_CAP)
+        check_range("ul_bpss and dl_bpss", ul.size, cap=TRACE_CELLS_CAP)
+        for name, m in (("ul_bpss", ul), ("dl_bpss", dl)):
+            check_range(name, m.min(), ge=0)
+        if ul.shape[1] != self.horizon_ticks:
+            raise ValueError(
+                f"ul_bpss must have horizon_ticks = {self.horizon_ticks} columns, got {ul.shape}"
+            )
+        if self.n_stations is not None and self.n_stations != ul.shape[0]:
+            raise ValueError(f"n_stations is {self.n_stations} but ul_bpss has {ul.shape[0]} rows")
+        self._check_frames(ul.shape[0])
+        object.__setattr__(self, "ul_bpss", ul)
+        object.__setattr__(self, "dl_bpss", dl)
+
+    def _check_frames(self, n_stations: int) -> None:
+        unknown = sorted(set(self.frames) - set(Trace.COLUMNS))
+        missing = [c for c in Trace.COLUMNS if c not in self.frames]
+        if unknown or missing:
+            raise ValueError(
+                f"frames must have the columns {', '.join(Trace.COLUMNS)}; "
+                f"unknown {unknown}, missing {missing}"
+            )
+        lengths = {len(v) for v in self.frames.values()}
+        if len(lengths) > 1:
+            raise ValueError(f"frames columns must have one length, got lengths {sorted(lengths)}")
+        f = {c: np.asarray(v, dtype=np.int64) for c, v in self.frames.items()}
+        if not lengths or lengths == {0}:
+            return
+        check_range("frames.station", f["station"].max(), le=n_stations - 1)
+        for c in ("station", "step", "capture_tick", "ul_bits", "dl_bits"):
+            check_range(f"frames.{c}", f[c].min(), ge=0)
+        for c in ("ul_ok", "dl_ok"):
+            bad = f[c][(f[c] != 0) & (f[c] != 1)]
+            if bad.size:
+                raise ValueError(f"frames.{c} must be 0 or 1, got {int(bad[0])}")
+        late = f["deadline_tick"] - f["capture_tick"]
+        check_range("frames.deadline_tick - capture_tick", late.min(), ge=1)
+        check_range("frames.deadline_tick", f["deadline_tick"].max(), le=self.horizon_ticks)
 
 
 @dataclass(frozen=True)
