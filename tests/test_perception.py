@@ -217,3 +217,19 @@ def test_render_edge_camera_with_detection(tmp_path: Path) -> None:
     assert frames.shape == (4, 37 * DETECTION_ZOOM, 120 * DETECTION_ZOOM, 3)
     result = CliRunner().invoke(app, [*args, "--show-detection"])  # overview camera
     assert result.exit_code == 2 and "show_detection needs the edge camera" in result.output
+
+
+def test_calibrate_refuses_the_shipped_calibration_folder_without_overwrite(tmp_path) -> None:
+    """Like ``train``: the package's models/ is written only with --overwrite."""
+    from typer.testing import CliRunner
+
+    from codesign_mb.cli import app
+    from codesign_mb.core.registry import models_dir
+
+    shipped = models_dir() / "perception" / "edge_cube.json"
+    before = shipped.read_bytes()
+    result = CliRunner().invoke(app, ["calibrate-perception", "-o", str(shipped)])
+    assert result.exit_code == 2
+    assert "inside the installed package's models folder" in result.output
+    assert "--overwrite" in result.output
+    assert shipped.read_bytes() == before

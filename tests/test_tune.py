@@ -395,3 +395,12 @@ def test_the_shipped_thresholds_are_current_and_tuned_on_dev() -> None:
         )
         resolved = row_for_plant(codesign_rule_row(), TablePlant(scenario, scenario=scenario))
         assert resolved.qos.options["threshold_m"] == entry["threshold_m"]
+
+
+def test_tune_sizes_are_capped_with_a_message_naming_the_cap() -> None:
+    from codesign_mb.core.config import ConfigError
+
+    with pytest.raises(ConfigError, match="trials .*episodes or seeds of one run"):
+        TuneConfig(scenario="paper", trials=10**9)
+    with pytest.raises(ConfigError, match="iterations .*bisection probes"):
+        TuneConfig(scenario="paper", iterations=10**6)

@@ -73,6 +73,7 @@ __all__ = [
     "load_config",
     "note",
     "progress_bar",
+    "refuse_package_models",
     "track",
 ]
 
@@ -445,3 +446,23 @@ def _set_dotted(data: dict[str, Any], key: str, value: Any) -> None:
         node[part] = child
         node = child
     node[leaf] = list(value) if isinstance(value, tuple) else value
+
+
+def refuse_package_models(*folders: tuple[str, Path]) -> None:
+    """``ValueError`` if a folder ``(option, path)`` is inside the package's ``models``.
+
+    The shipped checkpoints live there (:func:`~codesign_mb.core.registry.models_dir`, the
+    source tree's ``models/`` in an editable install); paths are compared resolved, so
+    ``./models/checkpoints/x`` in a source checkout and a symlink into it count too.
+    """
+    from codesign_mb.core import registry
+
+    models = registry.models_dir().resolve()
+    for option, folder in folders:
+        path = folder.expanduser().resolve()
+        if path == models or models in path.parents:
+            raise ValueError(
+                f"{option} {folder} is inside the installed package's models folder {models} "
+                "(the shipped checkpoints and calibrations); pass --overwrite to write "
+                "there, or choose another folder (default: runs/)"
+            )

@@ -22,6 +22,7 @@ from codesign_mb.cli.common import (
     load_config,
     note,
     progress_bar,
+    refuse_package_models,
 )
 
 __all__ = ["calibrate_perception", "register", "render"]
@@ -90,8 +91,16 @@ def render(
 
 def calibrate_perception(
     out: Annotated[Path, typer.Option("--out", "-o", help="Calibration file (.json).")] = Path(
-        "models/perception/edge_cube.json"
+        "runs/perception/edge_cube.json"
     ),
+    overwrite: Annotated[
+        bool,
+        typer.Option(
+            "--overwrite",
+            help="Allow --out inside the installed package's models folder (replacing the "
+            "shipped calibration, models/perception/).",
+        ),
+    ] = False,
     obj: Annotated[str, typer.Option("--object", help="Object: cube or cylinder.")] = "cube",
     seed_set_name: Annotated[
         str, typer.Option("--seed-set", help="Named seed set (calibration: dev).")
@@ -111,6 +120,8 @@ def calibrate_perception(
     from codesign_mb.core.seeds import seed_set
     from codesign_mb.studies.perception import calibrate
 
+    if not overwrite:
+        refuse_package_models(("--out", out))
     command = "codesign " + shlex.join(sys.argv[1:])
     with progress_bar("calibrate", disable=as_json) as progress:
         summary = calibrate(

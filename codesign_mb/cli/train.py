@@ -39,10 +39,11 @@ from codesign_mb.cli.common import (
     emit,
     load_config,
     note,
+    refuse_package_models,
     track,
 )
 
-__all__ = ["refuse_package_models", "register", "train"]
+__all__ = ["register", "train"]
 
 STAGES = ("a", "b", "c", "d")
 RUNS = Path("runs")
@@ -282,26 +283,6 @@ def train(
         ) from None
     note(f"stage {stage}: checkpoint written to {out_dir}")
     emit(result, as_json=as_json, title=f"stage {stage}")
-
-
-def refuse_package_models(*folders: tuple[str, Path]) -> None:
-    """``ValueError`` if a folder ``(option, path)`` is inside the package's ``models``.
-
-    The shipped checkpoints live there (:func:`~codesign_mb.core.registry.models_dir`, the
-    source tree's ``models/`` in an editable install); paths are compared resolved, so
-    ``./models/checkpoints/x`` in a source checkout and a symlink into it count too.
-    """
-    from codesign_mb.core import registry
-
-    models = registry.models_dir().resolve()
-    for option, folder in folders:
-        path = folder.expanduser().resolve()
-        if path == models or models in path.parents:
-            raise ValueError(
-                f"{option} {folder} is inside the installed package's models folder {models} "
-                "(the shipped checkpoints); pass --overwrite to write there, or choose "
-                "another folder (default: runs/)"
-            )
 
 
 def register(app: typer.Typer) -> None:

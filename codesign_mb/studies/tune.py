@@ -41,7 +41,13 @@ from typing import Any
 import pandas as pd
 
 from codesign_mb.adaptation.rules import tune_threshold
-from codesign_mb.core.config import from_mapping
+from codesign_mb.core.config import (
+    EPISODES_CAP,
+    WORKERS_CAP,
+    Cap,
+    check_range,
+    from_mapping,
+)
 from codesign_mb.core.registry import PlantSpec, factory, plant_factory
 from codesign_mb.core.results import provenance, to_jsonable, write_results
 from codesign_mb.core.seeds import SEED_SETS, seed_set
@@ -53,6 +59,8 @@ from codesign_mb.studies.tuned import plant_config, rule_options
 __all__ = ["TuneConfig", "TuneResult", "run_tune", "tuned_entry", "write_tune_results"]
 
 _REPORT_SETS = ("test",)
+
+ITERATIONS_CAP = Cap(64, "bisection probes (each halves the bracket's log width)")
 """Seed sets reported numbers come from: never tuned on."""
 
 
@@ -110,6 +118,9 @@ class TuneConfig:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
+        check_range("trials", self.trials, cap=EPISODES_CAP)
+        check_range("workers", self.workers, cap=WORKERS_CAP)
+        check_range("iterations", self.iterations, cap=ITERATIONS_CAP)
         if not (math.isfinite(self.high_m) and 0.0 < self.low_m < self.high_m):
             raise ValueError(f"need 0 < low_m < high_m, got {self.low_m}, {self.high_m}")
         seed_set(self.seed_set)  # an unknown name names the sets
