@@ -400,7 +400,7 @@ def test_the_shipped_thresholds_are_current_and_tuned_on_dev() -> None:
 def test_tune_sizes_are_capped_with_a_message_naming_the_cap() -> None:
     from codesign_mb.core.config import ConfigError
 
-    with pytest.raises(ConfigError, match="trials .*episodes or seeds of one run"):
+    with pytest.raises(ConfigError, match=r"trials .*episodes or seeds of one run"):
         TuneConfig(scenario="paper", trials=10**9)
-    with pytest.raises(ConfigError, match="iterations .*bisection probes"):
+    with pytest.raises(ConfigError, match=r"iterations .*bisection probes"):
         TuneConfig(scenario="paper", iterations=10**6)

@@ -28,6 +28,7 @@ import platform
 import re
 import subprocess
 import tempfile
+import warnings
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from datetime import UTC, date, datetime
 from importlib.metadata import PackageNotFoundError, version
@@ -43,6 +44,7 @@ __all__ = [
     "file_digest",
     "package_version",
     "provenance",
+    "read_json_table",
     "to_jsonable",
     "write_results",
 ]
@@ -55,6 +57,29 @@ _NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
 _UMASK = os.umask(0)
 os.umask(_UMASK)  # read the process umask once; mkstemp's files are 0600, results are not
 _FORMATS = ("parquet", "csv", "json")
+
+
+def read_json_table(path: Path, *, otherwise: str, stacklevel: int = 2) -> dict[str, Any] | None:
+    """The JSON object (a table) in ``path``; ``None`` when it is absent or corrupt.
+
+    A file that does not parse, or holds something other than an object, is reported by a
+    ``RuntimeWarning`` naming it and saying what happens ``otherwise`` (e.g. "the study is run
+    again"): a corrupt record costs a recomputation, never the run.
+    """
+    if not path.is_file():
+        return None
+    try:
+        data = json.loads(path.read_text())
+        if not isinstance(data, dict):
+            raise ValueError(f"a {type(data).__name__}, not a table")
+    except (ValueError, UnicodeDecodeError) as exc:
+        warnings.warn(
+            f"{path} is corrupt ({' '.join(str(exc).split())}); {otherwise}",
+            RuntimeWarning,
+            stacklevel=stacklevel + 1,
+        )
+        return None
+    return data
 
 
 def package_version() -> str:

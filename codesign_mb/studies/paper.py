@@ -46,7 +46,6 @@ import json
 import resource
 import shutil
 import time
-import warnings
 from collections.abc import Callable, Iterable, Iterator, Mapping
 from dataclasses import asdict, dataclass, field
 from datetime import UTC, datetime
@@ -58,7 +57,13 @@ import pandas as pd
 from codesign_mb.core.config import EPISODES_CAP, WORKERS_CAP, check_range
 from codesign_mb.core.records import RECORDS_DIR
 from codesign_mb.core.registry import resolve_checkpoint
-from codesign_mb.core.results import atomic_write, provenance, to_jsonable, write_results
+from codesign_mb.core.results import (
+    atomic_write,
+    provenance,
+    read_json_table,
+    to_jsonable,
+    write_results,
+)
 from codesign_mb.core.seeds import seed_set
 
 __all__ = [
@@ -338,21 +343,7 @@ def read_study(folder: str | Path) -> dict[str, Any] | None:
     A ``study.json`` that does not parse is reported (``RuntimeWarning`` naming it) and its
     study counts as not complete, so it is run again.
     """
-    path = Path(folder) / STUDY_FILE
-    if not path.is_file():
-        return None
-    try:
-        record = json.loads(path.read_text())
-        if not isinstance(record, dict):
-            raise ValueError(f"a {type(record).__name__}, not a table")
-    except (ValueError, UnicodeDecodeError) as exc:
-        warnings.warn(
-            f"{path} is corrupt ({' '.join(str(exc).split())}); the study is run again",
-            RuntimeWarning,
-            stacklevel=2,
-        )
-        return None
-    return record
+    return read_json_table(Path(folder) / STUDY_FILE, otherwise="the study is run again")
 
 
 def run_paper(

@@ -18,7 +18,6 @@ import functools
 import json
 import math
 import time
-import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -33,6 +32,7 @@ from codesign_mb.core.registry import (
     models_dir,
     resolve_checkpoint,
 )
+from codesign_mb.core.results import read_json_table
 
 __all__ = [
     "CPU_COLUMNS",
@@ -125,20 +125,7 @@ def _trained_plant(spec: ComponentSpec) -> PlantSpec | None:
 
 def _training_json(path: Path) -> dict[str, Any] | None:
     """A checkpoint's ``training.json``; ``None`` when absent, or corrupt (with a warning)."""
-    if not path.is_file():
-        return None
-    try:
-        meta = json.loads(path.read_text())
-        if not isinstance(meta, dict):
-            raise ValueError(f"a {type(meta).__name__}, not a table")
-    except (ValueError, UnicodeDecodeError) as exc:
-        warnings.warn(
-            f"{path} is corrupt ({' '.join(str(exc).split())}); its training is not counted",
-            RuntimeWarning,
-            stacklevel=3,
-        )
-        return None
-    return meta
+    return read_json_table(path, otherwise="its training is not counted", stacklevel=3)
 
 
 def _options_key(options: Mapping[str, Any]) -> str:
