@@ -48,14 +48,16 @@ def iter_ray(
         pass
     remote = ray.remote(num_cpus=1)(task)
     refs = {remote.remote(trial, seed): key for key, trial, seed in pending}
+    remaining = list(refs)
     try:
-        remaining = list(refs)
         while remaining:
             done, remaining = ray.wait(remaining, num_returns=1)
             for ref in done:
                 yield refs[ref], ray.get(ref)
     finally:
-        for ref in refs:
+        # Only the tasks not yet finished: cancelling a finished task can abort Ray's core
+        # worker ("Tried to complete task that was not pending"), taking the driver with it.
+        for ref in remaining:
             ray.cancel(ref, force=False)
         if owns:
             ray.shutdown()
