@@ -46,12 +46,6 @@ qos = { kind = "static", options = { reliability = 0.3, latency_steps = 1 } }
 """
 
 
-@pytest.fixture
-def runner(monkeypatch: pytest.MonkeyPatch) -> CliRunner:
-    monkeypatch.setenv("CODESIGN_NO_PROGRESS", "1")
-    return CliRunner()
-
-
 def _episodes(out: Path) -> pd.DataFrame:
     frame = pd.read_parquet(out / "tab_p_episodes.parquet")
     return frame.drop(columns=[c for c in frame if c in TIMING_COLUMNS or c.endswith("_cpu_ms")])

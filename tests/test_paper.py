@@ -32,12 +32,6 @@ from codesign_mb.studies.readme import BEGIN, END, read_block
 ROOT = Path(__file__).resolve().parents[1]
 
 
-@pytest.fixture
-def runner(monkeypatch: pytest.MonkeyPatch) -> CliRunner:
-    monkeypatch.setenv("CODESIGN_NO_PROGRESS", "1")
-    return CliRunner()
-
-
 def test_config_rejects_unknown_studies_and_seed_sets() -> None:
     with pytest.raises(ValueError, match="only must name studies among lqg"):
         PaperConfig(only=("table",))

@@ -59,12 +59,6 @@ qos = { kind = "static", options = { reliability = 0.3, latency_steps = 1 } }
 """
 
 
-@pytest.fixture
-def runner(monkeypatch: pytest.MonkeyPatch) -> CliRunner:
-    monkeypatch.setenv("CODESIGN_NO_PROGRESS", "1")
-    return CliRunner()
-
-
 def test_train_a_writes_checkpoint_then_resumes(runner: CliRunner, tmp_path: Path) -> None:
     config = tmp_path / "toy.toml"
     config.write_text(TOY_A)

@@ -74,12 +74,6 @@ def _dominated_brute_force(success: list[float], reliability: list[float]) -> li
     return front
 
 
-@pytest.fixture
-def runner(monkeypatch: pytest.MonkeyPatch) -> CliRunner:
-    monkeypatch.setenv("CODESIGN_NO_PROGRESS", "1")
-    return CliRunner()
-
-
 # -- the Pareto front and the best row ---------------------------------------------------------
 def test_pareto_front_on_a_hand_made_frame() -> None:
     frame = pd.DataFrame(

@@ -56,12 +56,6 @@ TOY_ROW = TableRow(
 
 
 @pytest.fixture
-def runner(monkeypatch: pytest.MonkeyPatch) -> CliRunner:
-    monkeypatch.setenv("CODESIGN_NO_PROGRESS", "1")
-    return CliRunner()
-
-
-@pytest.fixture
 def tuned_path(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
     """The tuned file the rows read, moved to a temporary folder."""
     monkeypatch.setattr(tuned_module, "models_dir", lambda: tmp_path)
