@@ -92,14 +92,13 @@ def incompatible_checkpoints(row: RowLike, plant: PlantSpec) -> list[str]:
     layout (e.g. the ``realistic`` scenario's packet without the object's velocity) cannot
     be fed to it at all. Checkpoints without a recorded plant are not judged here.
     """
-    wanted = _observation_signature(plant.name, _options_key(plant.options))
     found = []
     for _, spec in _specs(row):
         trained = _trained_plant(spec)
-        if trained is None:
+        if trained is None:  # a model-based component: no plant is built to judge it
             continue
         signature = _observation_signature(trained.name, _options_key(trained.options))
-        if signature != wanted:
+        if signature != _observation_signature(plant.name, _options_key(plant.options)):
             found.append(f"{spec.checkpoint} (trained on another observation layout)")
     return found
 

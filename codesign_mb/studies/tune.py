@@ -114,13 +114,12 @@ class TuneConfig:
             raise ValueError(f"row qos must be the covariance rule, got {self.tuned_row().qos}")
         if not 0.0 <= self.target_success <= 1.0:
             raise ValueError(f"target_success must be in [0, 1], got {self.target_success}")
-        for name in ("trials", "workers", "iterations"):
+        caps = {"trials": EPISODES_CAP, "workers": WORKERS_CAP, "iterations": ITERATIONS_CAP}
+        for name, cap in caps.items():
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
-        check_range("trials", self.trials, cap=EPISODES_CAP)
-        check_range("workers", self.workers, cap=WORKERS_CAP)
-        check_range("iterations", self.iterations, cap=ITERATIONS_CAP)
+            check_range(name, value, cap=cap)
         if not (math.isfinite(self.high_m) and 0.0 < self.low_m < self.high_m):
             raise ValueError(f"need 0 < low_m < high_m, got {self.low_m}, {self.high_m}")
         seed_set(self.seed_set)  # an unknown name names the sets
