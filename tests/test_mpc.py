@@ -211,3 +211,27 @@ def test_config_errors_name_the_field() -> None:
             max_speed_mps=1.0,
         )
     assert math.isclose(lag_discretisation(DT, 0.0)[2], DT)
+
+
+def test_the_fingers_close_only_on_a_certain_estimate() -> None:
+    """Uncertainty-aware grasping: at the grasp point with the estimator's uncertainty (the
+    entry after the state layout) above the gate the gripper keeps tracking with the fingers
+    open; once the uncertainty is below it, it closes."""
+    cfg = _config(grasp_std_gate_m=0.01)
+    ctl = MpcController(LAYOUT, control_period_s=DT, max_speed_mps=V_MAX, config=cfg)
+    ctl.reset(seed=0)
+    a, bp_v, bp_u = lag_discretisation(DT, cfg.lag_time_constant_s, cfg.position_blend)
+    p, v = np.array([0.3, 0.0, 0.2]), np.zeros(3)
+    obj, w = np.array([0.3, 0.0, 0.05]), np.zeros(3)
+    uncertain = []
+    for step in range(60):
+        std = 0.05 if step < 40 else 0.002
+        action = ctl.act(np.append(_obs(p, v, 0.08, obj, w), std))
+        uncertain.append((step, ctl.phase, action[3]))
+        if step == 39:
+            waiting = p.copy()
+        u = action[:3] * V_MAX
+        p, v = p + bp_v * v + bp_u * u, a * v + (1 - a) * u
+    assert all(ph < Phase.GRASP and grip < 0 for step, ph, grip in uncertain if step < 40)
+    assert np.hypot(*(waiting - obj)[:2]) < cfg.grasp_tolerance_m  # waiting over the object
+    assert any(ph == Phase.GRASP and grip > 0 for step, ph, grip in uncertain if step >= 40)

@@ -247,7 +247,9 @@ def test_a_missed_detection_sends_nothing() -> None:
     for t in range(1, 5):
         obs, _, _, _, info = env.step(np.zeros(4))
         assert not info["perceived"] and not info["delivered"]
-        assert info["qos_reliability"] == 1.0  # the policy's request is recorded
+        # Nothing to send: the network is asked nothing; the policy's choice is kept apart.
+        assert info["qos_reliability"] == 0.0 and info["qos_cost"] == 0.0
+        assert info["qos_asked"] == 1.0
         assert info["age"] == t + 1  # the prior, held since before t = 0
         assert np.array_equal(obs[7:10], prior)
     env.close()

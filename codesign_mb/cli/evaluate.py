@@ -43,7 +43,8 @@ def evaluate_command(
     estimator: Annotated[
         str,
         typer.Option(
-            help="Estimator: predictor (delay-compensating Kalman) or none (stale observation)."
+            help="Estimator: predictor (delay-compensating Kalman), belt_imm (switching-belt "
+            "IMM with a carried mode) or none (stale observation)."
         ),
     ] = "predictor",
     qos: Annotated[str, typer.Option(help="QoS policy: static.")] = "static",

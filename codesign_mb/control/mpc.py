@@ -10,7 +10,9 @@ Phases (explicit, :class:`Phase`)
 APPROACH (reference: hover above the object's predicted path) -> DESCEND (reference: the grasp
 point, once aligned laterally; back to APPROACH only if the lateral error grows beyond
 :attr:`MpcConfig.abort_tolerance_m`, the funnel keeping the gripper high enough in between) ->
-GRASP (close the fingers while tracking, for a few steps) -> LIFT (reference: straight up;
+GRASP (close the fingers while tracking, for a few steps; with
+:attr:`MpcConfig.grasp_std_gate_m` only once the estimate is certain enough, the gripper
+tracking the object at the grasp point until then) -> LIFT (reference: straight up;
 funnel off). A grasp that closes on nothing (fingers shut) opens and goes back to APPROACH.
 The defaults were tuned on the conveyor with perception noise and a variable belt speed.
 """
@@ -30,6 +32,7 @@ from codesign_mb.control.mpc_config import SOLVERS, MpcConfig, config_fields
 from codesign_mb.control.mpc_kernels import fill_parameters
 from codesign_mb.control.mpc_qp import OFF, MpcQp, MpcSolution, lag_discretisation
 from codesign_mb.control.mpc_qp import _quiet_stdout as _quiet_stdout  # tests silence qpOASES
+from codesign_mb.core.config import from_mapping
 
 __all__ = [
     "OFF",
@@ -115,14 +118,19 @@ class MpcController:
         self.reset()
 
     @classmethod
-    def from_env(cls, env: Any, config: MpcConfig | None = None) -> MpcController:
-        """Build for a conveyor env (wrapped or not).
+    def from_env(
+        cls, env: Any, config: MpcConfig | Mapping[str, Any] | None = None
+    ) -> MpcController:
+        """Build for a conveyor env (wrapped or not); ``config`` may be a mapping of
+        :class:`MpcConfig` fields (a table row's options).
 
         Layout, control period, maximum speed, belt velocity and (unless ``config`` sets it)
         the workspace box come from the plant.
         """
         plant = env.unwrapped
         plant_cfg = getattr(plant, "config", None)
+        if isinstance(config, Mapping):
+            config = from_mapping(MpcConfig, config, where="mpc config")
         config = config or MpcConfig()
         max_speed = _first_attr((plant_cfg, plant), ("max_gripper_speed_mps", "max_speed_mps"))
         period = _first_attr((plant, plant_cfg), ("control_period_s",))
@@ -170,6 +178,8 @@ class MpcController:
             obj_vel = obs[velocity]
         else:
             obj_vel = self.belt_velocity
+        std_slot = self._std_index
+        self._std = float(obs[std_slot]) if obs.shape[0] > std_slot else 0.0
         theta = self._parameters(grip_pos, grip_vel, width, obj, obj_vel)
         if self.recorder is not None:
             self.recorder.append(theta.copy())
@@ -205,6 +215,9 @@ class MpcController:
         indices = range(width.stop)[width] if width.stop is not None else range(0)
         self._width_index: int | None = indices[0] if len(indices) == 1 else None
         self._theta = np.empty(self.qp.n_theta)  # the layout of MpcQp.pack
+        # An estimator may append its position uncertainty right after the state layout.
+        self._std_index = max(s.stop or 0 for s in self.layout.values())
+        self._std = 0.0
         velocity = self.layout.get("object_vel")
         self._velocity_slot: slice | None = (
             slice(*velocity.indices(velocity.stop)) if velocity is not None else None
@@ -230,7 +243,11 @@ class MpcController:
         elif self.phase == Phase.DESCEND:
             if lateral > cfg.abort_tolerance_m:
                 self.phase = Phase.APPROACH
-            elif lateral <= cfg.grasp_tolerance_m and abs(e2) <= cfg.grasp_height_tolerance_m:
+            elif (
+                lateral <= cfg.grasp_tolerance_m
+                and abs(e2) <= cfg.grasp_height_tolerance_m
+                and (cfg.grasp_std_gate_m is None or self._std <= cfg.grasp_std_gate_m)
+            ):
                 self.phase = Phase.GRASP
                 self._closing = 0
         elif self.phase == Phase.GRASP:

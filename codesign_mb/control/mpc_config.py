@@ -60,6 +60,12 @@ class MpcConfig:
         of the descent despite a small lateral error (perception noise).
     close_steps:
         Steps the fingers get to close before LIFT.
+    grasp_std_gate_m:
+        Uncertainty-aware grasping: the fingers close only when the estimator's RMS position
+        uncertainty (an entry it appends after the state layout, e.g.
+        :class:`~codesign_mb.estimation.belt_imm.BeltImmPredictor` with ``output_std``) is at
+        most this; until then the gripper tracks the object at the grasp point and waits.
+        ``None``: close on position alone.
     min_grip_width_m:
         A finger width below this after closing means the grasp missed (back to APPROACH).
     weight_position, weight_height, weight_velocity, weight_command, weight_rate, weight_terminal:
@@ -92,6 +98,7 @@ class MpcConfig:
     grasp_height_tolerance_m: float = 0.015
     funnel_apex_depth_m: float = 0.015
     close_steps: int = 5
+    grasp_std_gate_m: float | None = None
     min_grip_width_m: float = 0.005
     weight_position: float = 100.0
     weight_height: float = 100.0
@@ -166,6 +173,9 @@ class MpcConfig:
                 raise ValueError(f"{name} must be >= 0, got {value}")
         if not (math.isfinite(self.weight_rate) and self.weight_rate > 0):
             raise ValueError(f"weight_rate must be > 0, got {self.weight_rate}")
+        gate = self.grasp_std_gate_m
+        if gate is not None and not (math.isfinite(gate) and gate > 0):
+            raise ValueError(f"grasp_std_gate_m must be > 0 or None, got {gate!r}")
         if self.solver not in SOLVERS:
             raise ValueError(f"solver must be one of {', '.join(SOLVERS)}, got {self.solver!r}")
 

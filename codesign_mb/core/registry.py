@@ -17,9 +17,11 @@ controller ``toy_pick``       ``control.scripted.ToyPickController`` (toy plant 
 estimator  ``none``           ``estimation.base.PassThroughEstimator`` (stale observation)
 estimator  ``mlp``/``lstm``   a learned estimator from ``checkpoint`` (``load_estimator``)
 estimator  ``predictor``      ``estimation.predictor.DelayCompensatingPredictor``
+estimator  ``belt_imm``       ``estimation.belt_imm.BeltImmPredictor`` (switching belt, carried)
 qos        ``static``         ``adaptation.base.StaticQos`` (``options``)
 qos        ``random``         ``adaptation.base.RandomQos``: ``q = 1`` w.p. ``probability``
 qos        ``rule``           the covariance-triggered rule on a predictor replica
+qos        ``planner``        ``adaptation.planner.QosPlanner`` on a belt-aware predictor replica
 qos        ``age_rule``       ``adaptation.rules.AgeTriggeredQos``
 qos        ``learned``        ``adaptation.learned.LearnedQosPolicy`` (``checkpoint``: folder)
 qos_feat.  ``elapsed_time``   ``adaptation.learned.ElapsedTimeFeature`` (``t / T``)
@@ -135,11 +137,15 @@ KINDS: dict[str, dict[str, Kind]] = {
         "predictor": Kind(
             "codesign_mb.estimation.predictor:DelayCompensatingPredictor.from_env", takes_env=True
         ),
+        "belt_imm": Kind(
+            "codesign_mb.estimation.belt_imm:BeltImmPredictor.from_env", takes_env=True
+        ),
     },
     "qos": {
         "static": Kind("codesign_mb.adaptation.base:StaticQos"),
         "random": Kind("codesign_mb.adaptation.base:RandomQos"),
         "rule": Kind("codesign_mb.rollout.compose:covariance_rule", takes_env=True),
+        "planner": Kind("codesign_mb.rollout.compose:qos_planner", takes_env=True),
         "age_rule": Kind("codesign_mb.adaptation.rules:AgeTriggeredQos"),
         "learned": Kind(
             "codesign_mb.adaptation.learned:LearnedQosPolicy.from_env",

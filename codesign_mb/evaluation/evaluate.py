@@ -444,7 +444,7 @@ def evaluate(
 
 # -- configured runs (the CLI and sweeps) --------------------------------------------------------
 _CONTROLLERS = ("mpc", "scripted")
-_ESTIMATORS = ("predictor", "none")
+_ESTIMATORS = ("predictor", "belt_imm", "none")
 QOS_POLICIES = ("static",)
 """QoS policies of ``codesign evaluate``: the static ``(q, tau)`` of the config."""
 
@@ -458,7 +458,7 @@ class EvaluateConfig:
     controller:
         A controller kind of the registry that needs no checkpoint (``"mpc"``, ``"scripted"``).
     estimator:
-        An estimator kind that needs no checkpoint (``"predictor"``, ``"none"``).
+        An estimator kind that needs no checkpoint (``"predictor"``, ``"belt_imm"``, ``"none"``).
     qos:
         ``"static"``.
     reliability, latency_steps:

@@ -38,10 +38,16 @@ class LinkObservationWrapper(gym.Wrapper):
     cost ``C(q, tau)``, the delivery ``delta_t``, the age and the true remote state.
 
     Edge perception: when the plant's ``info["perceived"]`` is False (a missed detection, no
-    object in view) there is no state to send: the link is stepped with ``q = 0`` (nothing is
-    delivered, what is held ages), while ``info`` still records the policy's request. The
-    plant may give the true remote state as ``info["remote_true"]`` (when its remote part is
-    perceived with errors); otherwise the remote part of its observation is the truth.
+    object in view) there is no state to send: the network is asked nothing, the link is
+    stepped with ``q = 0`` (nothing is delivered, what is held ages) and ``info`` records the
+    request made, ``q = 0`` and its cost (the policy's own choice is ``info["qos_asked"]``):
+    a packet that does not exist costs no radio resource, whichever the policy. The plant may
+    give the true remote state as ``info["remote_true"]`` (when its remote part is perceived
+    with errors); otherwise the remote part of its observation is the truth.
+
+    A policy with ``reads_robot_state = True`` is given, instead of the remote part alone, the
+    whole observation the robot held at ``t - 1`` (its proprioception, fresh, and ``y_{t-1}``):
+    the paper's ``y_{t-1}`` when the robot's own state also counts as output (``eq_q_pol``).
 
     Seeding: ``reset(seed=s)`` seeds the env with ``s`` and the link and QoS policy with
     independent streams spawned from ``s``; ``reset()`` without a seed continues all streams.
@@ -76,6 +82,7 @@ class LinkObservationWrapper(gym.Wrapper):
             dtype=space.dtype,
         )
         self._last: Reception | None = None
+        self._held_full = np.zeros(space.shape[0])
 
     @property
     def last_reception(self) -> Reception | None:
@@ -92,6 +99,8 @@ class LinkObservationWrapper(gym.Wrapper):
             link_seed = int(link_ss.generate_state(1)[0])
             qos_seed = int(qos_ss.generate_state(1)[0])
         prior = np.asarray(self.plant.remote_prior(), dtype=np.float64)
+        self._held_full = np.array(obs, dtype=np.float64, copy=True)
+        self._held_full[self.remote_slice] = prior
         self.link.reset(seed=link_seed, prior=prior)
         self.qos_policy.reset(seed=qos_seed)
         # Before t = 0 the robot holds the prior, of age 0 by the convention of eq_time.
@@ -111,20 +120,24 @@ class LinkObservationWrapper(gym.Wrapper):
         held: NDArray[np.float64],
         age: int,
     ) -> tuple[NDArray, dict[str, Any]]:
-        qos = self.qos_policy.request(held, age)  # eq_q_pol, eq_t_pol
-        if not isinstance(qos, QosRequest):
-            raise TypeError(f"qos_policy.request must return a QosRequest, got {qos!r}")
+        seen = self._held_full if getattr(self.qos_policy, "reads_robot_state", False) else held
+        asked = self.qos_policy.request(seen, age)  # eq_q_pol, eq_t_pol
+        if not isinstance(asked, QosRequest):
+            raise TypeError(f"qos_policy.request must return a QosRequest, got {asked!r}")
         remote = np.asarray(obs[self.remote_slice], dtype=float)
         sent = info.get("perceived", True)
-        rx = self.link.step(remote, qos if sent else QosRequest(0.0, qos.latency_steps))
+        qos = asked if sent else QosRequest(0.0, asked.latency_steps)
+        rx = self.link.step(remote, qos)
         self._last = rx
         out = np.empty(len(obs) + 1, dtype=self.observation_space.dtype)
         out[:-1] = obs
         out[self.remote_slice] = rx.observation  # eq_output
         out[-1] = rx.age
+        self._held_full = np.array(out[:-1], dtype=np.float64)
         info = dict(info)
         info.update(
             qos_reliability=qos.reliability,
+            qos_asked=asked.reliability,
             qos_latency_steps=qos.latency_steps,
             qos_cost=float(self.qos_cost(qos)),
             delivered=rx.delivered,

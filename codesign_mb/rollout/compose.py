@@ -8,6 +8,7 @@ these factories by kind (``qos = "rule"``, ``qos_feature = "predictor_std"``).
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
@@ -33,6 +34,7 @@ __all__ = [
     "predictor_replica",
     "predictor_replica_on",
     "predictor_std_feature",
+    "qos_planner",
     "remote_predictor_arguments",
 ]
 
@@ -222,3 +224,36 @@ def lqg(
         env, max_delay_steps=max_delay_steps, use_arrivals=use_arrivals
     )
     return estimator, LqrController.for_env(env)
+
+
+def qos_planner(
+    env: Any,
+    *,
+    grasp_std_m: float = 0.01,
+    far_std_m: float = math.inf,
+    lookahead: bool = True,
+    latency_steps: int = 1,
+    innovation_gate: float | None = 0.99,
+    change_gate: float = 0.5,
+    model_options: Mapping[str, Any] | None = None,
+) -> Any:
+    """The model-based QoS planner for a plant, on a replica of the robot's belt-aware predictor.
+
+    The keywords are :class:`~codesign_mb.adaptation.planner.QosPlanner`'s (``lookahead =
+    False``: the event-triggered rule); ``model_options`` override fields of the belt model
+    read from the plant (give the robot's own).
+    """
+    from codesign_mb.adaptation.planner import QosPlanner
+    from codesign_mb.estimation.belt_imm import BeltImmPredictor
+
+    replica = BeltImmPredictor.from_env(env, model_options=model_options)
+    return QosPlanner(
+        replica,
+        env.unwrapped.observation_layout,
+        grasp_std_m=grasp_std_m,
+        far_std_m=far_std_m,
+        lookahead=lookahead,
+        latency_steps=latency_steps,
+        innovation_gate=innovation_gate,
+        change_gate=change_gate,
+    )

@@ -412,9 +412,16 @@ def _random_references(
                 per_plant[plant.label].append(Reference(idle, "random", of=row.name))
                 why[(plant.label, idle.name)] = f"not run: {row.name!r} was not evaluated"
                 continue
+            # A request only costs when the edge has a packet to send (LinkObservationWrapper):
+            # random draws on every step, so it asks budget / perceived fraction per step.
+            perceived = (
+                float(source["perceived_fraction"].mean())
+                if "perceived_fraction" in source
+                else 1.0
+            )
             ref = random_reference(
                 row,
-                float(source["mean_requested_reliability"].mean()),
+                float(source["mean_requested_reliability"].mean()) / max(perceived, 1e-9),
                 float(source["mean_latency_steps"].mean()),
             )
             per_plant[plant.label].append(ref)

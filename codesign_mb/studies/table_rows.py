@@ -32,6 +32,7 @@ __all__ = [
     "CODESIGN_RULE_ROW",
     "PIPELINES",
     "PIPELINE_PLANTS",
+    "PLANNER_ROW",
     "PLANT_PRESETS",
     "TablePlant",
     "TableRow",
@@ -147,6 +148,26 @@ RULE_INNOVATION_GATE = 0.99
 """Chi-square probability above which a packet surprises the co-design rule (asks again)."""
 
 
+PLANNER_ROW = "MPC + belt IMM, QoS planner (co-design)"
+"""The model-based co-design of the belt-aware stack: uncertainty-aware MPC, IMM, planner."""
+
+PLANNER_GRASP_STD_M = 0.01
+"""The planner's grasp tolerance (RMS, m) and the MPC's grasp gate: chosen on dev seeds."""
+
+PLANNER_FAR_STD_M = 0.025
+"""Uncertainty (RMS, m) above which the planner asks wherever the gripper is (dev seeds)."""
+
+_MPC_GATED = ComponentSpec("mpc", options={"config": {"grasp_std_gate_m": PLANNER_GRASP_STD_M}})
+_BELT_IMM = ComponentSpec("belt_imm")
+
+
+def _planner(*, lookahead: bool = True) -> ComponentSpec:
+    """The QoS planner (``lookahead=False``: the event-triggered rule) at the dev-chosen
+    tolerances."""
+    options = {"grasp_std_m": PLANNER_GRASP_STD_M, "far_std_m": PLANNER_FAR_STD_M}
+    return ComponentSpec("planner", options={**options, "lookahead": lookahead})
+
+
 def _rule() -> ComponentSpec:
     """The covariance rule with the plant's tuned threshold (:func:`row_for_plant`)."""
     options = {"threshold_m": TUNED, "low": 0.0}
@@ -207,6 +228,8 @@ def model_based_rows() -> tuple[TableRow, ...]:
         TableRow("MPC + predictor, static QoS", _MPC, _PREDICTOR, _STATIC),
         TableRow("MPC, no estimator, rule QoS", _MPC, ComponentSpec("none"), _rule()),
         TableRow(CODESIGN_RULE_ROW, _MPC, _PREDICTOR, _rule()),
+        TableRow("MPC + belt IMM, event rule", _MPC_GATED, _BELT_IMM, _planner(lookahead=False)),
+        TableRow(PLANNER_ROW, _MPC_GATED, _BELT_IMM, _planner()),
     )
 
 

@@ -1,0 +1,240 @@
+"""The model-based QoS planner: ask for a packet only when the planned grasp needs it.
+
+Stage C of paper.tex (``eq_q_pol``) without learning, the constraint stated: at step ``t``
+choose ``q_t`` in ``{0, high}`` so that, with the smallest expected number of requests, the
+object's predicted lateral position uncertainty at the planned grasp step meets the grasp
+tolerance (the fingers close across the object; the belt's height is known)::
+
+    min  sum_s q_s    s.t.   sqrt(P_xx + P_yy)(t_grasp | requests) <= grasp_std_m
+
+``P`` follows the covariance recursion of the edge's replica of the robot's belt-aware
+predictor (:class:`~codesign_mb.estimation.belt_imm.BeltImmPredictor`, its averaged linear
+model from the current mode probabilities); a packet requested at ``s`` measures the state at
+``s`` and counts if it arrives by the grasp (``s + tau <= t_grasp``). The search: the cheapest
+schedule among "the last ``m`` useful steps before the grasp", with and without the current
+step (a packet now also pins the velocity down, which the last steps alone may not); the
+current step is requested only if it makes the schedule strictly cheaper, or if no schedule
+without it is feasible. (Later packets are fresher, so among equally cheap schedules the
+planner waits.) This restricted search is exact for the pure position part of a
+constant-velocity model and a heuristic beyond it; it is not a full dynamic program.
+
+The planned grasp step comes from the robot's state at ``t - 1`` (the policy reads it:
+:attr:`QosPlanner.reads_robot_state`): the horizontal distance to the predicted object at an
+approach speed, the height to descend at a descent speed, and the closing steps.
+
+Event triggers on top (the event-triggered rule alone when ``lookahead=False``): a packet the
+model did not expect (normalised innovation squared above the chi-square quantile
+``innovation_gate``), or a suspected belt change (probability of the non-RUN modes above
+``change_gate``), asks ``high`` until an expected packet arrives; so does an uncertainty
+above ``grasp_std_m`` while the gripper is at the grasp point (over the object, at its
+height: closing, or waiting there until the estimate is certain enough to close).
+After the grasp (the object carried, or lifted) nothing is asked.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.stats import chi2
+
+from codesign_mb.network.qos import QosRequest
+
+__all__ = ["QosPlanner"]
+
+
+class QosPlanner:
+    """QoS from the model (module docstring): a :class:`~codesign_mb.network.qos.QosPolicy`.
+
+    Parameters
+    ----------
+    replica:
+        A fresh belt-aware predictor on the plant's observation layout (the edge's replica of
+        the robot's estimator), fed what the robot held.
+    layout:
+        The plant's observation layout (``gripper_pos`` is read).
+    grasp_std_m:
+        Lateral RMS position uncertainty the grasp tolerates (m; chosen on dev seeds).
+    lookahead:
+        Plan towards the grasp (the planner); ``False``: only the event triggers and the
+        grasp-window check (the event-triggered rule).
+    far_std_m:
+        Ask whenever the uncertainty one packet ahead exceeds this, wherever the gripper is
+        (keeps the approach on the object; ``inf``: never).
+    """
+
+    reads_robot_state = True
+    """Given the robot's whole held observation (:class:`LinkObservationWrapper`)."""
+
+    def __init__(
+        self,
+        replica: Any,
+        layout: Mapping[str, slice],
+        *,
+        grasp_std_m: float = 0.008,
+        lookahead: bool = True,
+        far_std_m: float = math.inf,
+        high: float = 1.0,
+        latency_steps: int = 1,
+        innovation_gate: float | None = 0.99,
+        change_gate: float = 0.5,
+        approach_speed_mps: float = 0.5,
+        descend_speed_mps: float = 0.3,
+        close_steps: int = 5,
+        hover_height_m: float = 0.06,
+        grasp_window_m: float = 0.03,
+        grasp_height_m: float = 0.02,
+        max_lookahead_steps: int = 40,
+    ) -> None:
+        QosRequest(high, latency_steps)
+        if latency_steps < 1:
+            raise ValueError(f"latency_steps must be >= 1, got {latency_steps}")
+        for name, value in (
+            ("grasp_std_m", grasp_std_m),
+            ("approach_speed_mps", approach_speed_mps),
+            ("descend_speed_mps", descend_speed_mps),
+        ):
+            if not (math.isfinite(value) and value > 0):
+                raise ValueError(f"{name} must be > 0, got {value!r}")
+        if not far_std_m > 0:
+            raise ValueError(f"far_std_m must be > 0, got {far_std_m!r}")
+        if innovation_gate is not None and not 0.0 < innovation_gate < 1.0:
+            raise ValueError(f"innovation_gate must be in (0, 1) or None, got {innovation_gate!r}")
+        if not 0.0 < change_gate <= 1.0:
+            raise ValueError(f"change_gate must be in (0, 1], got {change_gate!r}")
+        if "gripper_pos" not in layout:
+            raise ValueError("the planner reads gripper_pos: the layout lacks it")
+        self.replica = replica
+        self.grasp_std_m = float(grasp_std_m)
+        self.lookahead = bool(lookahead)
+        self.far_std_m = float(far_std_m)
+        self.latency_steps = int(latency_steps)
+        self.nis_limit = (
+            math.inf
+            if innovation_gate is None
+            else float(chi2.ppf(innovation_gate, replica.measured_dims))
+        )
+        self.change_gate = float(change_gate)
+        self.approach_speed_mps = float(approach_speed_mps)
+        self.descend_speed_mps = float(descend_speed_mps)
+        self.close_steps = int(close_steps)
+        self.hover_height_m = float(hover_height_m)
+        self.grasp_window_m = float(grasp_window_m)
+        self.grasp_height_m = float(grasp_height_m)
+        self.max_lookahead_steps = int(max_lookahead_steps)
+        self._gripper = _indices(layout["gripper_pos"])
+        self._send = QosRequest(high, self.latency_steps)
+        self._skip = QosRequest(0.0, self.latency_steps)
+        self.reset()
+
+    def reset(self, *, seed: int | None = None) -> None:
+        self._calls = 0
+        self._updates = 0
+        self._surprised = False
+        self._start_z: float | None = None
+        self._lifted = False
+        self.planned_grasp_steps: list[int] = []
+
+    # -- the policy ------------------------------------------------------------------------
+    def request(self, observation: NDArray[np.float64], age: int) -> QosRequest:
+        """``(q_t, tau)`` from what the robot held at ``t - 1`` (its state and ``y_{t-1}``)."""
+        held = np.asarray(observation, dtype=float)
+        calls, self._calls = self._calls, self._calls + 1
+        if calls == 0:  # t = 0: the robot holds the prior
+            return self._send
+        wrapped = np.append(held, float(age))
+        if calls == 1:
+            self.replica.reset(wrapped)
+        else:
+            self.replica.estimate(wrapped, np.zeros(0))
+        if self.replica.updates > self._updates:  # a new packet arrived: was it expected?
+            self._updates = self.replica.updates
+            modes = self.replica.mode_probabilities
+            changing = modes["change"] + modes["start"]  # a speed step, a slip, a restart
+            self._surprised = self.replica.last_nis > self.nis_limit or changing > self.change_gate
+        if self.replica.updates == 0:
+            return self._send  # nothing measured yet
+        if self.replica.carried or self._lifted_now(held):
+            return self._skip
+        if self._surprised:
+            return self._send
+        return self._send if self._needed(held) else self._skip
+
+    def _lifted_now(self, held: NDArray[np.float64]) -> bool:
+        z = float(self.replica.state[2])
+        if self._start_z is None:
+            self._start_z = z
+        self._lifted = self._lifted or z > self._start_z + 0.03
+        return self._lifted
+
+    def _needed(self, held: NDArray[np.float64]) -> bool:
+        """Whether a packet now is part of the cheapest schedule that meets the grasp."""
+        tau = self.latency_steps
+        soon = self.replica.position_std_ahead(1 + tau)
+        if soon > self.far_std_m:
+            return True
+        steps = self.grasp_steps(held)
+        self.planned_grasp_steps.append(steps)
+        if steps <= 1 + tau or self._in_window(held):
+            # At the grasp (the robot may wait there for a certain estimate): keep the
+            # uncertainty the packet is used at within the tolerance.
+            return soon > self.grasp_std_m
+        if not self.lookahead:
+            return False
+        last = steps - tau  # the latest stamp (offset from t - 1) still useful at the grasp
+        slots = list(range(2, last + 1))  # offset 1 is now (the packet of step t)
+
+        def cheapest(now: bool) -> float:
+            """Fewest packets (now, if ``now``, and the last ``m`` slots) meeting the grasp:
+            bisection, feasibility being monotone in ``m``."""
+            fixed = [1] if now else []
+
+            def meets(m: int) -> bool:
+                chosen = fixed + slots[len(slots) - m :]
+                return self.replica.position_std_ahead(steps, chosen) <= self.grasp_std_m
+
+            if not meets(len(slots)):
+                return math.inf
+            lo, hi = -1, len(slots)  # meets(hi) holds; meets(lo) is taken as failing
+            while hi - lo > 1:
+                mid = (lo + hi) // 2
+                if meets(mid):
+                    hi = mid
+                else:
+                    lo = mid
+            return hi + len(fixed)
+
+        without = cheapest(False)
+        if without == 0:
+            return False
+        return without == math.inf or cheapest(True) < without
+
+    def _in_window(self, held: NDArray[np.float64]) -> bool:
+        """The gripper at the grasp point (over the object, at its height): closing, or
+        waiting there for an estimate certain enough to close on."""
+        obj, grip = self.replica.state, held[self._gripper]
+        lateral = float(np.hypot(grip[0] - obj[0], grip[1] - obj[1]))
+        return lateral <= self.grasp_window_m and grip[2] - obj[2] < self.grasp_height_m
+
+    def grasp_steps(self, held: NDArray[np.float64]) -> int:
+        """Planned steps from ``t - 1`` to the grasp: approach, descend, close."""
+        obj = self.replica.state
+        grip = held[self._gripper]
+        dt = self.replica.control_period_s
+        lateral = float(np.hypot(grip[0] - obj[0], grip[1] - obj[1]))
+        approach = max(lateral - self.grasp_window_m, 0.0) / (self.approach_speed_mps * dt)
+        height = max(float(grip[2] - obj[2]), 0.0)
+        if lateral > self.grasp_window_m:
+            height = max(height, self.hover_height_m)
+        descend = height / (self.descend_speed_mps * dt)
+        steps = math.ceil(approach + descend) + self.close_steps
+        return int(min(max(steps, 1), self.max_lookahead_steps))
+
+
+def _indices(s: slice) -> NDArray[np.intp]:
+    if s.stop is None:
+        raise ValueError(f"layout slices need an explicit stop, got {s}")
+    return np.arange(s.start or 0, s.stop, s.step or 1)
