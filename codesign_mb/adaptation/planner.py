@@ -64,6 +64,10 @@ class QosPlanner:
     far_std_m:
         Ask whenever the uncertainty one packet ahead exceeds this, wherever the gripper is
         (keeps the approach on the object; ``inf``: never).
+    closing_std_m:
+        The tolerance while the fingers close (finger width below ``closing_width_m``;
+        ``None``: 1.5 ``grasp_std_m``): across the object the fingers leave room, a packet
+        then only has to catch a belt event.
     """
 
     reads_robot_state = True
@@ -87,6 +91,8 @@ class QosPlanner:
         hover_height_m: float = 0.06,
         grasp_window_m: float = 0.03,
         grasp_height_m: float = 0.02,
+        closing_std_m: float | None = None,
+        closing_width_m: float = 0.075,
         max_lookahead_steps: int = 40,
     ) -> None:
         QosRequest(high, latency_steps)
@@ -124,8 +130,12 @@ class QosPlanner:
         self.hover_height_m = float(hover_height_m)
         self.grasp_window_m = float(grasp_window_m)
         self.grasp_height_m = float(grasp_height_m)
+        self.closing_std_m = 1.5 * self.grasp_std_m if closing_std_m is None else closing_std_m
+        self.closing_width_m = float(closing_width_m)
         self.max_lookahead_steps = int(max_lookahead_steps)
         self._gripper = _indices(layout["gripper_pos"])
+        width = layout.get("finger_width")
+        self._width = _indices(width) if width is not None else None
         self._send = QosRequest(high, self.latency_steps)
         self._skip = QosRequest(0.0, self.latency_steps)
         self.reset()
@@ -180,8 +190,12 @@ class QosPlanner:
         self.planned_grasp_steps.append(steps)
         if steps <= 1 + tau or self._in_window(held):
             # At the grasp (the robot may wait there for a certain estimate): keep the
-            # uncertainty the packet is used at within the tolerance.
-            return soon > self.grasp_std_m
+            # uncertainty the packet is used at within the tolerance; once the fingers close
+            # (they only do on a certain estimate), within the looser closing tolerance.
+            closing = self._width is not None and float(np.mean(held[self._width])) < (
+                self.closing_width_m
+            )
+            return soon > (self.closing_std_m if closing else self.grasp_std_m)
         if not self.lookahead:
             return False
         last = steps - tau  # the latest stamp (offset from t - 1) still useful at the grasp
