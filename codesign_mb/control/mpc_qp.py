@@ -73,9 +73,11 @@ each step and redoes its matrix setup, although ``H`` never changes and ``A`` on
 joint rows. The default, ``"daqp_native"``, calls DAQP directly on a workspace set up once
 per episode
 (:class:`~codesign_mb.control.daqp_workspace.DaqpWorkspace`): a step updates the linear term
-and the bounds and hot-starts from the last working set. On the recorded closed-loop
-problems it gives qpOASES' solutions to about 1e-15 in a third of its time (whole
-:meth:`MpcQp.solve`: about 35 us against 90-110 us of CPU, ``codesign bench mpc``). The
+and the bounds (and ``A``, after a relinearisation) and hot-starts from the last working set.
+On the recorded closed-loop problems it gives qpOASES' solutions to about 1e-12 in less than
+half its time (whole :meth:`MpcQp.solve`, median CPU: about 0.14 ms against 0.33 ms with the
+joint rows; 0.09 ms on the two thirds of the steps that keep ``A``, 0.32 ms on those that
+rewrite it; ``codesign bench mpc``). The
 CasADi plugins stay selectable through :attr:`MpcConfig.solver`: qpOASES (hot start), DAQP
 and OSQP (warm start from the shifted previous solution).
 """
