@@ -131,9 +131,11 @@ def test_a_failing_mpc_solver_is_counted_and_the_run_completes(
     solve = DaqpWorkspace.solve
     calls = [0]
 
-    def every_third_fails(self: DaqpWorkspace) -> tuple[np.ndarray, int]:
+    def every_third_fails(
+        self: DaqpWorkspace, *, matrix_changed: bool = False
+    ) -> tuple[np.ndarray, int]:
         calls[0] += 1
-        x, flag = solve(self)
+        x, flag = solve(self, matrix_changed=matrix_changed)
         return (np.full_like(x, np.nan), 1) if calls[0] % 3 == 0 else (x, flag)  # "solved"
 
     monkeypatch.setattr(DaqpWorkspace, "solve", every_third_fails)

@@ -80,8 +80,15 @@ def test_predictor_target_at_fast_belt_and_four_steps_of_delay() -> None:
 def test_bench_mpc_on_recorded_problems() -> None:
     from codesign_mb.bench.mpc import bench_mpc
 
-    result = bench_mpc(repeats=1, seed=0, solvers=("qpoases", "daqp"), episodes_per_speed=1)
+    result = bench_mpc(
+        repeats=1,
+        seed=0,
+        solvers=("qpoases", "daqp"),
+        episodes_per_speed=1,
+        model_error_episodes=1,
+    )
     assert result["solver"] == "daqp_native" and result["problems"] == 200
+    assert result["model_error"]["steps"] == 99 and result["joint_limited_steps"][0] == 1
     assert [s["solver"] for s in result["solvers"]] == ["daqp_native", "qpoases", "daqp"]
     assert all(s["failures"] == 0 for s in result["solvers"])
     assert 0 < result["median_ms"] <= result["p99_ms"] <= result["max_ms"]

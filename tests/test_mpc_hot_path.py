@@ -29,10 +29,10 @@ class ReferenceQp:
         self.warm = qp.config.solver != "qpoases"
         self.x0, self.lam_x0, self.lam_a0 = np.zeros(qp.n_var), np.zeros(qp.n_var), None
 
-    def solve(self, theta: np.ndarray) -> tuple[bool, np.ndarray]:
+    def solve(self, theta: np.ndarray, joints: Any = None) -> tuple[bool, np.ndarray]:
         qp = self.qp
-        data = qp.qp_data(theta)
-        args: dict[str, Any] = {"h": qp._H_dm, "a": qp._A_dm}
+        data = qp.qp_data(theta, joints)
+        args: dict[str, Any] = {"h": qp._H_dm, "a": data["a"]}
         args.update({k: data[k] for k in ("g", "lba", "uba", "lbx", "ubx")})
         if self.warm:
             lam_a0 = np.zeros(qp.n_con) if self.lam_a0 is None else self.lam_a0
@@ -40,7 +40,7 @@ class ReferenceQp:
         with _quiet_stdout():
             out = self.solver.call(args)
         x = np.array(out["x"]).ravel()
-        ax = qp.A @ x
+        ax = data["a"] @ x
         worst = max(
             np.max(data["lbx"] - x),
             np.max(x - data["ubx"]),
@@ -121,14 +121,17 @@ def test_hot_path_equals_function_call_on_recorded_episodes(solver: str) -> None
     assert args["config"].solver == "daqp_native"  # the default records the problems
     config = dataclasses.replace(args["config"], solver=solver)
     reference = dataclasses.replace(args["config"], solver="qpoases")
-    qp = MpcQp(config, dt=args["dt"], max_speed_mps=args["max_speed_mps"])
-    ref = ReferenceQp(MpcQp(reference, dt=args["dt"], max_speed_mps=args["max_speed_mps"]))
+    kw = {"dt": args["dt"], "max_speed_mps": args["max_speed_mps"]}
+    qp = MpcQp(config, joint_limits=args["joint_limits"], **kw)
+    ref = ReferenceQp(MpcQp(reference, joint_limits=args["joint_limits"], **kw))
+    assert args["joint_limits"] is not None  # the conveyor's controller knows the joints
     for episode in problems:
         qp.reset()
         ref.reset()
-        for theta in episode:
-            ok, x = ref.solve(theta)
-            sol = qp.solve(theta)
+        for theta, joints in episode:
+            assert joints is not None
+            ok, x = ref.solve(theta, joints)
+            sol = qp.solve(theta, joints)
             assert ok and sol.success
             if solver == "qpoases":
                 np.testing.assert_array_equal(sol.commands.ravel(), x[: 3 * qp.n])

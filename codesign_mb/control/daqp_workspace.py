@@ -31,7 +31,10 @@ DAQP_STATUS = {
 
 
 class DaqpWorkspace:
-    """``min 1/2 x'Hx + f'x  s.t.  lower <= (x, A x) <= upper`` with ``H``, ``A`` fixed.
+    """``min 1/2 x'Hx + f'x  s.t.  lower <= (x, A x) <= upper``, ``H`` fixed, ``A`` mostly.
+
+    ``A`` may be rewritten in place (:attr:`constraints`; then :meth:`solve` with
+    ``matrix_changed``).
 
     Write :attr:`f`, :attr:`lower` and :attr:`upper` in place (the views :attr:`lower_x`,
     :attr:`upper_x` for the simple bounds on ``x``, :attr:`lower_a`, :attr:`upper_a` for
@@ -71,8 +74,12 @@ class DaqpWorkspace:
         """Drop the working set: the next :meth:`solve` starts cold."""
         self._model = None
 
-    def solve(self) -> tuple[NDArray[np.float64], int]:
-        """Solve on the current data; ``(x, exit flag)``, the flag > 0 on success."""
+    def solve(self, *, matrix_changed: bool = False) -> tuple[NDArray[np.float64], int]:
+        """Solve on the current data; ``(x, exit flag)``, the flag > 0 on success.
+
+        ``matrix_changed``: :attr:`constraints` was written since the last solve (DAQP then
+        redoes ``M = A R^-1``, keeping ``R = chol(H)`` and the working set).
+        """
         model = self._model
         if model is None:
             model = self._daqp.Model()
@@ -82,6 +89,11 @@ class DaqpWorkspace:
             if flag < 0:
                 return np.full(self.f.shape, np.nan), int(flag)
             self._model = model
+        elif matrix_changed:
+            flag = model.update(f=self.f, A=self.constraints, bupper=self.upper, blower=self.lower)
+            if flag < 0:
+                self._model = None
+                return np.full(self.f.shape, np.nan), int(flag)
         else:
             model.update(f=self.f, bupper=self.upper, blower=self.lower)
         x, _, flag, _ = model.solve()

@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import dataclasses
 import enum
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -30,6 +30,7 @@ from numpy.typing import NDArray
 
 from codesign_mb.control.mpc_config import SOLVERS, MpcConfig, config_fields
 from codesign_mb.control.mpc_kernels import fill_parameters
+from codesign_mb.control.mpc_model import JointLimits, joint_linearisation
 from codesign_mb.control.mpc_qp import OFF, MpcQp, MpcSolution, lag_discretisation
 from codesign_mb.control.mpc_qp import _quiet_stdout as _quiet_stdout  # tests silence qpOASES
 from codesign_mb.core.config import from_mapping
@@ -90,6 +91,15 @@ class MpcController:
     belt_velocity:
         Object velocity assumed when the observation carries none (world frame, m/s): the
         plant's nominal belt velocity.
+    joint_state:
+        The arm's proprioception: returns its joint positions (the Panda's 7 arm joints
+        first, as :meth:`~codesign_mb.robot.simulator.ConveyorSimulator.joint_positions`).
+        A robot-side quantity, local and fresh, not sent over the link and not part of the
+        observation (whose fixed layout learned checkpoints read); with it (and
+        :attr:`MpcConfig.joint_limits`) the QP limits the joints, linearised through the
+        Pinocchio Jacobian at each step (:mod:`~codesign_mb.control.mpc_model`).
+        :meth:`from_env` binds the plant's; it is not pickled (a copy in another process
+        has no joint limits until built there by :meth:`from_env`).
     """
 
     def __init__(
@@ -100,6 +110,7 @@ class MpcController:
         max_speed_mps: float,
         config: MpcConfig | None = None,
         belt_velocity: tuple[float, float, float] = (0.0, 0.0, 0.0),
+        joint_state: Callable[[], NDArray[np.float64]] | None = None,
     ) -> None:
         required = ("gripper_pos", "gripper_vel", "finger_width", "object_pos")
         missing = [k for k in required if k not in layout]
@@ -110,11 +121,26 @@ class MpcController:
         self.control_period_s = float(control_period_s)
         self.max_speed_mps = float(max_speed_mps)
         self.belt_velocity = np.asarray(belt_velocity, dtype=float).reshape(3)
-        self.qp = MpcQp(self.config, dt=self.control_period_s, max_speed_mps=self.max_speed_mps)
+        self._joint_state = joint_state if self.config.joint_limits else None
+        limits, self._robot = None, None
+        if self._joint_state is not None:
+            from codesign_mb.robot.model import PandaModel  # its own Pinocchio data
+
+            self._robot = PandaModel()
+            limits = JointLimits.panda(
+                margin_rad=self.config.joint_margin_rad,
+                velocity_fraction=self.config.joint_velocity_fraction,
+            )
+        self.qp = MpcQp(
+            self.config,
+            dt=self.control_period_s,
+            max_speed_mps=self.max_speed_mps,
+            joint_limits=limits,
+        )
         self._prepare()
         self.total_failures = 0
-        self.recorder: list[NDArray[np.float64]] | None = None
-        """When a list, every QP parameter vector solved is appended (benchmarks replay them)."""
+        self.recorder: list[tuple[NDArray[np.float64], Any]] | None = None
+        """When a list, every QP solved, ``(theta, joints)``, is appended (benchmarks replay)."""
         self.reset()
 
     @classmethod
@@ -144,17 +170,20 @@ class MpcController:
             config = dataclasses.replace(
                 config, workspace_low=tuple(lo.tolist()), workspace_high=tuple(hi.tolist())
             )
+        sim = getattr(plant, "sim", None)  # the robot's own joint sensors (not observed)
         return cls(
             getattr(plant, "state_layout", None) or plant.observation_layout,
             control_period_s=float(period),
             max_speed_mps=float(max_speed),
             config=config,
             belt_velocity=tuple(np.asarray(belt if belt is not None else (0, 0, 0), dtype=float)),
+            joint_state=getattr(sim, "joint_positions", None),
         )
 
     # -- Controller protocol -------------------------------------------------------------
     def reset(self, *, seed: int | None = None) -> None:
         self.qp.reset()
+        self._linearisation: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None
         self.phase = Phase.APPROACH
         self._closing = 0
         self._lift_origin: NDArray[np.float64] | None = None
@@ -181,9 +210,10 @@ class MpcController:
         std_slot = self._std_index
         self._std = float(obs[std_slot]) if obs.shape[0] > std_slot else 0.0
         theta = self._parameters(grip_pos, grip_vel, width, obj, obj_vel)
+        joints = self._joints()
         if self.recorder is not None:
-            self.recorder.append(theta.copy())
-        solution = self.qp.solve(theta)
+            self.recorder.append((theta.copy(), joints))
+        solution = self.qp.solve(theta, joints)
         self.last_solution = solution
         self._log.solve_times_s.append(solution.solve_time_s)
         self._log.cpu_times_s.append(solution.cpu_time_s)
@@ -200,6 +230,20 @@ class MpcController:
         np.minimum(np.maximum(u / self.max_speed_mps, -1.0), 1.0, out=action[:3])  # np.clip
         action[3] = self._grip
         return action
+
+    def _joints(self) -> tuple[NDArray[np.float64], NDArray[np.float64]] | None:
+        """The measured arm joints and ``J_v^+``, relinearised once they moved far enough."""
+        if self._joint_state is None or self.qp.joint_limits is None:
+            return None
+        q = np.asarray(self._joint_state(), dtype=float)
+        n_arm = self.qp.joint_limits.n
+        lin = self._linearisation
+        if lin is None or np.max(np.abs(q[:n_arm] - lin[0])) > self.config.joint_relinearise_rad:
+            lin = self._linearisation = (
+                q[:n_arm].copy(),
+                joint_linearisation(self._robot, q, n_arm),
+            )
+        return q[:n_arm].copy(), lin[1]
 
     # -- phase logic ----------------------------------------------------------------------
     def _prepare(self) -> None:

@@ -26,10 +26,18 @@ class MpcConfig:
     position_blend:
         With ``T = 0``: share of a step travelled at the previous velocity (see
         :func:`lag_discretisation`). The defaults are identified from the plant's
-        operational-space loop, whose velocity reference slews at 12 m/s^2: the TCP velocity
-        reaches a command within one 40 ms step, on a ramp.
+        operational-space loop, whose velocity reference slews at 8 m/s^2: with the change
+        of the command kept inside that slew (:attr:`max_accel_mps2`) the TCP velocity
+        reaches the command within one 40 ms step, on a ramp; ``0.31`` is the least-squares
+        fit of ``p+ - p - dt u = beta dt (v - u)`` over closed-loop steps on the realistic
+        scenario, dev seeds (``codesign bench mpc``: ``position_blend_fit``).
     max_accel_mps2:
-        Bound on the predicted gripper acceleration, per axis.
+        Bound on the norm of the predicted gripper acceleration (the velocity change per
+        step over ``dt``), kept as the cuboctahedron inscribed in that ball
+        (:func:`~codesign_mb.control.mpc_model.ramp_rows`). Below the low level's reference
+        slew (:attr:`~codesign_mb.robot.osc.OscGains.max_accel_mps2`, 8 m/s^2), so the ramp
+        to each command ends within the step, as the model ``v[k+1] = u[k]`` says; the margin
+        covers the difference between the measured velocity and the low level's reference.
     speed_fraction:
         Fraction of the plant's maximum Cartesian speed the MPC may command, in (0, 1].
     workspace_low, workspace_high:
@@ -70,7 +78,19 @@ class MpcConfig:
         A finger width below this after closing means the grasp missed (back to APPROACH).
     weight_position, weight_height, weight_velocity, weight_command, weight_rate, weight_terminal:
         Cost weights: lateral and vertical position error, velocity tracking, command
-        deviation from the feed-forward, command rate, terminal multiplier.
+        deviation from the feed-forward, command rate, and the multiplier of the terminal
+        cost (the per-axis LQ cost-to-go, :func:`~codesign_mb.control.mpc_model.terminal_weights`).
+    joint_limits:
+        Limit the arm's joint positions and speeds (linearised through the Pinocchio
+        Jacobian at each step) when the controller knows the joints
+        (:meth:`MpcController.from_env` on a plant with a robot).
+    joint_margin_rad, joint_velocity_fraction:
+        How far inside the joint position limits the predicted joints stay, and the share of
+        the joint speed limits the MPC may use.
+    joint_relinearise_rad:
+        The Jacobian of the joint limits is recomputed once a joint moved this far from
+        where it was last computed (the rows then change, and the solver redoes its matrix
+        setup); in between, the joints' offsets still use the measured configuration.
     slack_linear, slack_quadratic:
         Penalties ``rho1, rho2`` on the slack of the soft constraints (plane and funnel).
     solver:
@@ -81,8 +101,8 @@ class MpcConfig:
 
     horizon: int = 15
     lag_time_constant_s: float = 0.0
-    position_blend: float = 0.25
-    max_accel_mps2: float = 10.0
+    position_blend: float = 0.31
+    max_accel_mps2: float = 7.5
     speed_fraction: float = 1.0
     workspace_low: tuple[float, float, float] | None = None
     workspace_high: tuple[float, float, float] | None = None
@@ -105,10 +125,14 @@ class MpcConfig:
     weight_velocity: float = 1.0
     weight_command: float = 0.1
     weight_rate: float = 1.0
-    weight_terminal: float = 5.0
+    weight_terminal: float = 1.0
     slack_linear: float = 1e3
     slack_quadratic: float = 1e4
     solver: str = "daqp_native"
+    joint_limits: bool = True
+    joint_margin_rad: float = 0.05
+    joint_velocity_fraction: float = 0.9
+    joint_relinearise_rad: float = 0.02
 
     def __post_init__(self) -> None:
         for name in ("horizon", "close_steps"):
@@ -176,6 +200,18 @@ class MpcConfig:
         gate = self.grasp_std_gate_m
         if gate is not None and not (math.isfinite(gate) and gate > 0):
             raise ValueError(f"grasp_std_gate_m must be > 0 or None, got {gate!r}")
+        if not isinstance(self.joint_limits, bool):
+            raise ValueError(f"joint_limits must be a bool, got {self.joint_limits!r}")
+        if not (math.isfinite(self.joint_margin_rad) and self.joint_margin_rad >= 0):
+            raise ValueError(f"joint_margin_rad must be >= 0, got {self.joint_margin_rad}")
+        if not (math.isfinite(self.joint_relinearise_rad) and self.joint_relinearise_rad >= 0):
+            raise ValueError(
+                f"joint_relinearise_rad must be >= 0, got {self.joint_relinearise_rad}"
+            )
+        if not 0.0 < self.joint_velocity_fraction <= 1.0:
+            raise ValueError(
+                f"joint_velocity_fraction must be in (0, 1], got {self.joint_velocity_fraction}"
+            )
         if self.solver not in SOLVERS:
             raise ValueError(f"solver must be one of {', '.join(SOLVERS)}, got {self.solver!r}")
 

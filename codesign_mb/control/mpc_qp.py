@@ -3,12 +3,18 @@
 Model (per Cartesian axis, control period ``dt``)
 -------------------------------------------------
 The arm's low-level operational-space loop (:mod:`codesign_mb.robot.osc`) makes the gripper
-velocity ``v`` follow the commanded Cartesian velocity ``u``. Identified on the plant with
-step commands: the TCP velocity reaches the command within one 40 ms step (the reference
-slews at 12 m/s^2), on a ramp, so the model is::
+velocity ``v`` follow the commanded Cartesian velocity ``u``: its velocity reference slews
+towards the command at 8 m/s^2 (in norm), and the TCP tracks the reference. As long as the
+change of the command stays within that slew (the *ramp* constraint below), the TCP
+velocity reaches the command within one 40 ms step, on a ramp, so the model is::
 
     v[k+1] = u[k]
-    p[k+1] = p[k] + dt (beta v[k] + (1 - beta) u[k])        (beta = 0.25)
+    p[k+1] = p[k] + dt (beta v[k] + (1 - beta) u[k])        (beta = 0.31)
+
+``beta`` is identified by least squares on closed-loop steps against MuJoCo
+(:func:`codesign_mb.bench.mpc.one_step_model_error`, which also prints the one-step
+prediction error: p99 below 2 mm, where the same model without the ramp constraint, whose
+commands outran the slew, had 10 mm).
 
 and, more generally (:func:`lag_discretisation`), the exact discretisation of a first-order lag
 of time constant ``T`` (:attr:`MpcConfig.lag_time_constant_s`), ``a = exp(-dt / T)``::
@@ -23,12 +29,19 @@ path only enters the QP's linear term and constraint bounds.
 QP over the horizon ``N`` (decision ``U = (u[0], ..., u[N-1])`` and one slack ``s >= 0``)::
 
     min  sum_k |p[k] - r[k]|^2_Q + |v[k] - vr[k]|^2_Qv + |u[k] - vr[k]|^2_R
-         + |u[k] - u[k-1]|^2_S + rho1 s + rho2 s^2
+         + |u[k] - u[k-1]|^2_S + rho1 s + rho2 s^2 + x[N]' P x[N]
     s.t. |u[k]| <= v_max                                   (velocity, hard, per axis)
-         |v[k+1] - v[k]| <= a_max dt                       (acceleration, hard)
+         v[k+1] - v[k] in the ramp's cuboctahedron         (acceleration, hard, 7 rows)
          lo[k] <= p[k] <= hi[k], k = 1..N                  (workspace box, hard)
          z[k] + s >= c[k]                                  (clearance plane, soft)
          z[k] - c |x[k] - ox[k]| + s >= h[k]  (same in y)  (approach funnel, soft)
+         q_lo <= q0 + J_v^+ (p[k] - p[0]) <= q_hi          (joint positions, hard)
+         |J_v^+ v[k]| <= qd_max                            (joint speeds, hard)
+
+The terminal cost ``x[N]' P x[N]`` (per axis, ``x = (e_p, e_v, e_u-)``) is the LQ cost-to-go
+of the unconstrained problem, and the ramp, the joint rows and ``J_v^+`` (the Pinocchio
+Jacobian at the measured joints ``q0``, limited at the steps ``k = 1, 2, 4, 8, .., N``) are
+built in :mod:`~codesign_mb.control.mpc_model`, which says why each is what it is.
 
 The workspace box ``[lo, hi]`` is widened, where needed, to the path of a maximal braking from
 the measured state, so a gripper outside it or too fast to stop inside it (pushed by a contact,
@@ -42,23 +55,29 @@ Approach from above: until the gripper is aligned with the object, the *clearanc
 lets it come down only as long as it stays laterally on the object. Each is linear (four
 faces per step for the funnel), so the problem stays a QP; a bound of ``-inf``-like value
 switches one off. The Hessian and the constraint matrix are constant (the weights do not
-depend on the phase): only the linear term and the bounds change from step to step.
+depend on the phase): only the linear term and the bounds change from step to step, and
+the joint rows, whose coefficients follow the configuration: they are rewritten when the
+controller relinearises (:attr:`MpcConfig.joint_relinearise_rad`), and the solver then redoes
+its matrix setup (DAQP: ``Model.update`` with the new ``A``).
 
 Why an active-set QP solver, and why DAQP on its own workspace
 --------------------------------------------------------------
 The model is linear and the constraints are polyhedral, so the problem is a small, dense,
-strictly convex QP (3N + 1 variables, 11N constraints: 46 and 165 at N = 15); an NLP solver
-(IPOPT, FATROP) would only add overhead and iterations. Active-set methods (qpOASES, DAQP)
-suit parametric MPC: started from the previous step's active set, most steps take zero to a
-few iterations, and their solutions are exact vertices (bounds respected to machine
-precision, where an ADMM solver such as OSQP stops at a tolerance and needs polishing).
-Through ``casadi.conic`` every solver is handed the whole QP each step and redoes its matrix
-setup, although ``H`` and ``A`` never change. The default, ``"daqp_native"``, calls DAQP
-directly on a workspace set up once per episode
+strictly convex QP (3N + 1 variables, 15N constraints and 14 per joint-limited step: 46 and
+295 at N = 15); an NLP solver (IPOPT, FATROP) would only add overhead and iterations.
+Active-set methods (qpOASES, DAQP) suit parametric MPC: started from the previous step's
+active set, most steps take zero to a few iterations, and their solutions are exact vertices
+(bounds respected to machine precision, where an ADMM solver such as OSQP stops at a
+tolerance and needs polishing). Through ``casadi.conic`` every solver is handed the whole QP
+each step and redoes its matrix setup, although ``H`` never changes and ``A`` only in its
+joint rows. The default, ``"daqp_native"``, calls DAQP directly on a workspace set up once
+per episode
 (:class:`~codesign_mb.control.daqp_workspace.DaqpWorkspace`): a step updates the linear term
-and the bounds and hot-starts from the last working set. On the recorded closed-loop
-problems it gives qpOASES' solutions to about 1e-15 in a third of its time (whole
-:meth:`MpcQp.solve`: about 35 us against 90-110 us of CPU, ``codesign bench mpc``). The
+and the bounds (and ``A``, after a relinearisation) and hot-starts from the last working set.
+On the recorded closed-loop problems it gives qpOASES' solutions to about 1e-12 in less than
+half its time (whole :meth:`MpcQp.solve`, median CPU: about 0.14 ms against 0.33 ms with the
+joint rows; 0.09 ms on the two thirds of the steps that keep ``A``, 0.32 ms on those that
+rewrite it; ``codesign bench mpc``). The
 CasADi plugins stay selectable through :attr:`MpcConfig.solver`: qpOASES (hot start), DAQP
 and OSQP (warm start from the shifted previous solution).
 """
@@ -81,6 +100,14 @@ from codesign_mb.control.conic_buffer import ConicBuffer
 from codesign_mb.control.daqp_workspace import DAQP_STATUS, DaqpWorkspace
 from codesign_mb.control.mpc_config import MpcConfig
 from codesign_mb.control.mpc_kernels import stopping_bounds, worst_violation
+from codesign_mb.control.mpc_model import (
+    JointLimits,
+    JointRows,
+    joint_steps,
+    ramp_half_width,
+    ramp_rows,
+    terminal_weights,
+)
 
 __all__ = ["OFF", "MpcQp", "MpcSolution", "lag_discretisation"]
 
@@ -94,6 +121,9 @@ FEASIBILITY_TOL = 1e-5
 
 OFF = 1e3
 """A constraint whose lower bound is ``-OFF`` metres is inactive."""
+
+Joints = tuple[NDArray[np.float64], NDArray[np.float64]]
+"""The arm's measured joint positions ``q0`` and ``J_v^+`` at them (:mod:`.mpc_model`)."""
 
 
 def lag_discretisation(
@@ -154,7 +184,14 @@ class MpcQp:
         :attr:`MpcConfig.speed_fraction`.
     """
 
-    def __init__(self, config: MpcConfig, *, dt: float, max_speed_mps: float) -> None:
+    def __init__(
+        self,
+        config: MpcConfig,
+        *,
+        dt: float,
+        max_speed_mps: float,
+        joint_limits: JointLimits | None = None,
+    ) -> None:
         if not (math.isfinite(dt) and dt > 0):
             raise ValueError(f"dt must be > 0, got {dt}")
         if not (math.isfinite(max_speed_mps) and max_speed_mps > 0):
@@ -165,6 +202,7 @@ class MpcQp:
                 "the controller with MpcController.from_env"
             )
         self.config = config
+        self.joint_limits = joint_limits
         self.dt = float(dt)
         self.v_max = float(max_speed_mps) * config.speed_fraction
         self.n = config.horizon
@@ -176,9 +214,10 @@ class MpcQp:
         self.reset()
 
     # -- construction -------------------------------------------------------------------
-    def _symbolic(self, ca: Any, theta: Any, w: Any) -> tuple[Any, Any]:
-        """The cost and the constraint expressions of the QP (module docstring), in CasADi."""
+    def _symbolic(self, ca: Any, theta: Any, w: Any) -> tuple[Any, Any, Any, Any]:
+        """The cost, the constraints and the predicted positions and velocities, in CasADi."""
         cfg, n = self.config, self.n
+        ramp = ca.DM(ramp_rows(cfg.max_accel_mps2, self.dt)[0])
         a, bp_v, bp_u = lag_discretisation(self.dt, cfg.lag_time_constant_s, cfg.position_blend)
         p, v, u_prev = theta[0:3], theta[3:6], theta[6:9]
         ref = ca.reshape(theta[9 : 9 + 3 * n], 3, n)
@@ -189,20 +228,20 @@ class MpcQp:
         s = w[3 * n]
         q_pos = ca.diag(ca.DM([cfg.weight_position, cfg.weight_position, cfg.weight_height]))
         cost = cfg.slack_linear * s + cfg.slack_quadratic * s**2
-        acc, pos, funnel, clearance = [], [], [], []
+        acc, pos, vel, funnel, clearance = [], [], [], [], []
         u_last = u_prev
         c = cfg.funnel_slope
         for k in range(n):
             uk = U[:, k]
             v_next = a * v + (1 - a) * uk
             p = p + bp_v * v + bp_u * uk
-            acc.append(v_next - v)
+            acc.append(ca.mtimes(ramp, v_next - v))
             v = v_next
             pos.append(p)
+            vel.append(v)
             e = p - ref[:, k]
-            terminal = cfg.weight_terminal if k == n - 1 else 1.0
-            cost += terminal * ca.bilin(q_pos, e, e)
-            cost += terminal * cfg.weight_velocity * ca.sumsqr(v - vref[:, k])
+            cost += ca.bilin(q_pos, e, e)
+            cost += cfg.weight_velocity * ca.sumsqr(v - vref[:, k])
             cost += cfg.weight_command * ca.sumsqr(uk - vref[:, k])
             cost += cfg.weight_rate * ca.sumsqr(uk - u_last)
             u_last = uk
@@ -211,7 +250,15 @@ class MpcQp:
             rel = p[2] - apex[2, k] + s
             funnel.extend([rel - c * dx, rel + c * dx, rel - c * dy, rel + c * dy])
             clearance.append(p[2] + s - plane[k])
-        return cost, ca.vertcat(*acc, *pos, *funnel, *clearance)
+        # Terminal cost: the per-axis LQ cost-to-go of (e_p, e_v, e_u-) at step N (DARE).
+        for i, weight in enumerate((cfg.weight_position, cfg.weight_position, cfg.weight_height)):
+            P = terminal_weights(
+                a, bp_v, bp_u, position=weight, velocity=cfg.weight_velocity,
+                command=cfg.weight_command, rate=cfg.weight_rate,
+            )  # fmt: skip
+            x = ca.vertcat(p[i] - ref[i, n - 1], v[i] - vref[i, n - 1], u_last[i] - vref[i, n - 1])
+            cost += cfg.weight_terminal * ca.bilin(ca.DM(P), x, x)
+        return cost, ca.vertcat(*acc, *pos, *funnel, *clearance), ca.vertcat(*pos), ca.vertcat(*vel)
 
     def _build(self) -> None:
         import casadi as ca
@@ -220,8 +267,11 @@ class MpcQp:
         a, bp_v, bp_u = lag_discretisation(dt, cfg.lag_time_constant_s, cfg.position_blend)
         theta = ca.SX.sym("theta", self.n_theta)
         w = ca.SX.sym("w", self.n_var)
-        cost, g = self._symbolic(ca, theta, w)
-        self.n_con = g.shape[0]
+        cost, g, pos, vel = self._symbolic(ca, theta, w)
+        steps = [k - 1 for k in joint_steps(n)] if self.joint_limits is not None else []
+        # The predicted positions and velocities at the joint-limited steps, affine in w.
+        pos_k = ca.vertcat(*[pos[3 * k : 3 * k + 3] for k in steps]) if steps else ca.DM()
+        vel_k = ca.vertcat(*[vel[3 * k : 3 * k + 3] for k in steps]) if steps else ca.DM()
         # Split everything into its constant and theta-affine parts, numerically, once.
         H = ca.hessian(cost, w)[0]
         grad0 = ca.substitute(ca.gradient(cost, w), w, ca.DM.zeros(self.n_var))
@@ -236,30 +286,55 @@ class MpcQp:
         H_num, A_num, G_num, B_num = (np.array(ca.DM(m)) for m in maps(zero))
         offsets = ca.Function("offsets", [theta], [grad0, g_off])
         g0, b0 = (np.array(m).ravel() for m in offsets(zero))
+        self.joints: JointRows | None = None
+        if self.joint_limits is not None:
+            pv = ca.vertcat(pos_k, vel_k)
+            pv_map = ca.Function("pv", [theta], [ca.jacobian(pv, w), ca.jacobian(pv, theta)])
+            pv_off = ca.Function("pv0", [theta], [ca.substitute(pv, w, ca.DM.zeros(self.n_var))])
+            A_pv, B_pv = (np.array(ca.DM(m)) for m in pv_map(zero))
+            half = 3 * len(steps)
+            self.joints = JointRows(
+                self.joint_limits,
+                A_pv[:half].reshape(len(steps), 3, self.n_var),
+                A_pv[half:].reshape(len(steps), 3, self.n_var),
+            )
+            self._pv_map = (B_pv, np.array(pv_off(zero)).ravel())
+            A_num = np.vstack([A_num, np.zeros((self.joints.n_rows, self.n_var))])
+            B_num = np.vstack([B_num, np.zeros((self.joints.n_rows, self.n_theta))])
+            b0 = np.concatenate([b0, np.zeros(self.joints.n_rows)])
+        self.joint_steps = tuple(k + 1 for k in steps)
+        self.n_con = A_num.shape[0]
         self.H = H_num
         self.A = A_num
         self.G, self.g0 = G_num, g0
         self.B, self.b0 = B_num, b0
         self._H_dm = ca.DM(H_num)
         self._A_dm = ca.DM(A_num)
-        acc_bound = cfg.max_accel_mps2 * dt
+        ramp_bound = np.tile(ramp_rows(cfg.max_accel_mps2, dt)[1], n)
+        # Braking: every axis slows by the same step, (s, s, s) inside the cuboctahedron.
+        acc_bound = 2.0 * ramp_half_width(cfg.max_accel_mps2, dt) / 3.0
         self._model = (a, bp_v, bp_u)
         self._acc_bound = acc_bound
         self._ws_low, self._ws_high = np.asarray(cfg.workspace_low), np.asarray(cfg.workspace_high)
         lo = np.array(cfg.workspace_low)
         hi = np.array(cfg.workspace_high)
-        self.con_low = np.concatenate([np.full(3 * n, -acc_bound), np.tile(lo, n), np.zeros(5 * n)])
+        n_joint = self.n_con - 15 * n
+        self.con_low = np.concatenate(
+            [-ramp_bound, np.tile(lo, n), np.zeros(5 * n), np.full(n_joint, -OFF)]
+        )
         self.con_high = np.concatenate(
-            [np.full(3 * n, acc_bound), np.tile(hi, n), np.full(5 * n, np.inf)]
+            [ramp_bound, np.tile(hi, n), np.full(5 * n, np.inf), np.full(n_joint, OFF)]
         )
         self.var_low = np.concatenate([np.full(3 * n, -self.v_max), [0.0]])
         self.var_high = np.concatenate([np.full(3 * n, self.v_max), [np.inf]])
         # Constraint row blocks, for tests and diagnostics.
         self.rows = {
-            "acceleration": slice(0, 3 * n),
-            "workspace": slice(3 * n, 6 * n),
-            "funnel": slice(6 * n, 10 * n),
-            "clearance": slice(10 * n, 11 * n),
+            "acceleration": slice(0, 7 * n),
+            "workspace": slice(7 * n, 10 * n),
+            "funnel": slice(10 * n, 14 * n),
+            "clearance": slice(14 * n, 15 * n),
+            "joint_position": slice(15 * n, 15 * n + n_joint // 2),
+            "joint_velocity": slice(15 * n + n_joint // 2, 15 * n + n_joint),
         }
         self._ca = ca
         # Work arrays of the hot path (solve), allocated once.
@@ -268,6 +343,11 @@ class MpcQp:
         self._low = self.con_low.copy()
         self._high = self.con_high.copy()
         self._ax = np.empty(self.n_con)
+        self._matrix_changed = self._joints_on = False
+        self._pinv: NDArray[np.float64] | None = None
+        if self.joints is not None:
+            self._joint_rows = slice(self.rows["joint_position"].start, self.n_con)
+            self._joint_index = np.asarray(steps)
 
     def _make_solver(self) -> Any:
         with _quiet_stdout():  # qpOASES prints its licence banner on every instance
@@ -294,6 +374,9 @@ class MpcQp:
 
     def reset(self) -> None:
         """Forget the warm start: a fresh solver instance, so episodes do not depend on history."""
+        if self.joints is not None:  # the next solve with joints writes their rows afresh
+            self.A[self._joint_rows] = 0.0
+            self._joints_on, self._pinv = False, None
         if self.config.solver == NATIVE_DAQP:  # H and A set up at the first solve
             if self._workspace is None:
                 self._workspace = DaqpWorkspace(self.H, self.A)
@@ -341,8 +424,14 @@ class MpcQp:
         ]
         return np.concatenate(parts)
 
-    def qp_data(self, theta: NDArray[np.float64]) -> dict[str, NDArray[np.float64]]:
+    def qp_data(
+        self, theta: NDArray[np.float64], joints: Joints | None = None
+    ) -> dict[str, NDArray[np.float64]]:
         """The QP ``min 1/2 w'Hw + g'w, lba <= A w <= uba, lbx <= w <= ubx`` at ``theta``.
+
+        With ``joints`` (and :attr:`joint_limits`), the joint-limit rows are those of the
+        configuration (:class:`~codesign_mb.control.mpc_model.JointRows`); without, they are
+        zero and unbounded.
 
         The workspace bounds are widened, where needed, to the path of a maximal braking
         from the measured state (:meth:`stopping_path`): a gripper outside the box, or too
@@ -355,25 +444,58 @@ class MpcQp:
         rows = self.rows["workspace"]
         low[rows] = np.minimum(low[rows], stop.ravel())
         high[rows] = np.maximum(high[rows], stop.ravel())
+        A, lba, uba = self.A.copy(), low - offset, high - offset
+        if self.joints is not None:
+            rows = self._joint_rows
+            A[rows] = 0.0
+            if joints is not None:
+                self._joint_data(theta, joints, A[rows], lba[rows], uba[rows])
         return {
             "h": self.H,
             "g": self.G @ theta + self.g0,
-            "a": self.A,
-            "lba": low - offset,
-            "uba": high - offset,
+            "a": A,
+            "lba": lba,
+            "uba": uba,
             "lbx": self.var_low,
             "ubx": self.var_high,
         }
+
+    def _joint_data(
+        self,
+        theta: NDArray[np.float64],
+        joints: Joints,
+        matrix: NDArray[np.float64] | None,
+        lower: NDArray[np.float64],
+        upper: NDArray[np.float64],
+    ) -> None:
+        """The joint-limit rows (unless ``matrix`` is None) and their bounds at ``theta``."""
+        assert self.joints is not None
+        q0, pinv = joints
+        B_pv, b_pv = self._pv_map
+        pv = B_pv @ theta + b_pv
+        half = 3 * self._joint_index.size
+        stop_p, stop_v = self.braking_path(theta[0:3], theta[3:6])
+        k = self._joint_index
+        self.joints.fill(
+            pinv, q0, theta[0:3], pv[:half].reshape(-1, 3), pv[half:].reshape(-1, 3),
+            stop_p[k], stop_v[k], matrix, lower, upper,
+        )  # fmt: skip
 
     def stopping_path(
         self, position: NDArray[np.float64], velocity: NDArray[np.float64]
     ) -> NDArray[np.float64]:
         """Positions ``p[1..N]`` (shape ``(N, 3)``) when braking as hard as the constraints allow.
 
-        Per axis, the command steps the velocity towards zero by the acceleration bound each
-        step (it satisfies the velocity and acceleration constraints whenever the measured
-        speed is within ``v_max + a_max dt``).
+        Per axis, the command steps the velocity towards zero by the same step each step
+        (``(s, s, s)`` inside the ramp's cuboctahedron: it satisfies the velocity and
+        acceleration constraints whenever the measured speed is within ``v_max + s``).
         """
+        return self.braking_path(position, velocity)[0]
+
+    def braking_path(
+        self, position: NDArray[np.float64], velocity: NDArray[np.float64]
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Positions and velocities ``p[1..N]``, ``v[1..N]`` of :meth:`stopping_path`."""
         a, bp_v, bp_u = self._model
         step = self._acc_bound / (1.0 - a)
         if a == 0.0:  # the velocity is the command: closed form
@@ -381,28 +503,33 @@ class MpcQp:
             speeds = np.maximum(np.abs(v) - self._k_step, 0.0)
             np.minimum(speeds[1:], self.v_max, out=speeds[1:])
             vs = np.sign(v) * speeds  # v[0..N]; u[k] = v[k+1]
-            return position + np.cumsum(bp_v * vs[:-1] + bp_u * vs[1:], axis=0)
+            return position + np.cumsum(bp_v * vs[:-1] + bp_u * vs[1:], axis=0), vs[1:]
         p = np.asarray(position, dtype=float).copy()
         v = np.asarray(velocity, dtype=float).copy()
-        out = np.empty((self.n, 3))
+        out, vel = np.empty((self.n, 3)), np.empty((self.n, 3))
         for k in range(self.n):
             u = np.clip(np.sign(v) * np.maximum(np.abs(v) - step, 0.0), -self.v_max, self.v_max)
             p = p + bp_v * v + bp_u * u
             v = a * v + (1.0 - a) * u
-            out[k] = p
-        return out
+            out[k], vel[k] = p, v
+        return out, vel
 
-    def solve(self, theta: NDArray[np.float64]) -> MpcSolution:
+    def solve(self, theta: NDArray[np.float64], joints: Joints | None = None) -> MpcSolution:
         """Solve the QP at ``theta`` (warm-started from the previous solve).
 
         The data of :meth:`qp_data` are written into the arrays bound to the solver's buffer
         (:class:`~codesign_mb.control.conic_buffer.ConicBuffer`), so a step converts nothing.
+        ``joints``: the configuration's joint-limit rows (:meth:`qp_data`).
         """
         if self._workspace is not None:
-            return self._solve_native(theta)
+            return self._solve_native(theta, joints)
         conic = self._conic
         inputs = conic.inputs
-        self._fill(np.asarray(theta, dtype=float), inputs["g"], inputs["lba"], inputs["uba"])
+        self._fill(
+            np.asarray(theta, dtype=float), inputs["g"], inputs["lba"], inputs["uba"], joints
+        )
+        if self._matrix_changed:
+            inputs["a"][:] = self.A.ravel(order="F")  # the dense A's nonzeros, column-major
         if self._warm_inputs:  # qpOASES hot-starts from its own active set instead
             inputs["x0"][:] = self._x0
             inputs["lam_x0"][:] = self._lam_x0
@@ -432,15 +559,15 @@ class MpcQp:
         status = _SUCCESS_STATUS.get(self.config.solver) or str(conic.stats()["return_status"])
         return MpcSolution(x[: 3 * n].reshape(n, 3), True, status, elapsed, float(x[3 * n]), cpu)
 
-    def _solve_native(self, theta: NDArray[np.float64]) -> MpcSolution:
+    def _solve_native(self, theta: NDArray[np.float64], joints: Joints | None) -> MpcSolution:
         """:meth:`solve` by DAQP on its kept workspace (:class:`DaqpWorkspace`)."""
         workspace = self._workspace
         assert workspace is not None
         lower, upper = workspace.lower_a, workspace.upper_a
-        self._fill(np.asarray(theta, dtype=float), workspace.f, lower, upper)
+        self._fill(np.asarray(theta, dtype=float), workspace.f, lower, upper, joints)
         start_cpu = time.thread_time()
         start = time.perf_counter()
-        x, flag = workspace.solve()
+        x, flag = workspace.solve(matrix_changed=self._matrix_changed)
         elapsed = time.perf_counter() - start
         cpu = time.thread_time() - start_cpu
         n = self.n
@@ -458,8 +585,33 @@ class MpcQp:
         g: NDArray[np.float64],
         lba: NDArray[np.float64],
         uba: NDArray[np.float64],
+        joints: Joints | None = None,
     ) -> None:
-        """Write :meth:`qp_data`'s ``g``, ``lba``, ``uba`` at ``theta`` into the given arrays."""
+        """Write :meth:`qp_data`'s ``g``, ``lba``, ``uba`` (and ``A``'s joint rows, in
+        :attr:`A`; :attr:`_matrix_changed` says whether they changed) into the given arrays."""
+        self._fill_common(theta, g, lba, uba)
+        self._matrix_changed = False
+        if self.joints is None:
+            return
+        rows = self._joint_rows
+        if joints is not None:
+            # The same J_v^+ object as last step (the caller kept its linearisation): the
+            # rows are unchanged, so the solver keeps its matrix setup.
+            same = self._joints_on and joints[1] is self._pinv
+            matrix = None if same else self.A[rows]
+            self._joint_data(theta, joints, matrix, lba[rows], uba[rows])
+            self._matrix_changed, self._joints_on, self._pinv = not same, True, joints[1]
+        elif self._joints_on:  # back to zero rows (their bounds are already +-OFF)
+            self.A[rows] = 0.0
+            self._matrix_changed, self._joints_on, self._pinv = True, False, None
+
+    def _fill_common(
+        self,
+        theta: NDArray[np.float64],
+        g: NDArray[np.float64],
+        lba: NDArray[np.float64],
+        uba: NDArray[np.float64],
+    ) -> None:
         np.matmul(self.G, theta, out=g)
         g += self.g0
         offset = self._offset
@@ -495,10 +647,11 @@ class MpcQp:
             "config": self.config,
             "dt": self.dt,
             "max_speed_mps": self.v_max / self.config.speed_fraction,
+            "joint_limits": self.joint_limits,
         }
 
     def __setstate__(self, state: dict[str, Any]) -> None:
-        self.__init__(state["config"], dt=state["dt"], max_speed_mps=state["max_speed_mps"])  # type: ignore[misc]
+        self.__init__(state.pop("config"), **state)  # type: ignore[misc]
 
 
 class _NullText(io.TextIOBase):
