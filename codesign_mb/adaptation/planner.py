@@ -87,7 +87,7 @@ class QosPlanner:
         change_gate: float = 0.5,
         approach_speed_mps: float = 0.5,
         descend_speed_mps: float = 0.3,
-        close_steps: int = 5,
+        close_steps: int = 0,
         hover_height_m: float = 0.06,
         grasp_window_m: float = 0.03,
         grasp_height_m: float = 0.02,
@@ -147,6 +147,8 @@ class QosPlanner:
         self._start_z: float | None = None
         self._lifted = False
         self.planned_grasp_steps: list[int] = []
+        self.reason: str | None = None
+        """Why the last request asked ``high`` (``None``: it did not)."""
 
     # -- the policy ------------------------------------------------------------------------
     def request(self, observation: NDArray[np.float64], age: int) -> QosRequest:
@@ -154,7 +156,7 @@ class QosPlanner:
         held = np.asarray(observation, dtype=float)
         calls, self._calls = self._calls, self._calls + 1
         if calls == 0:  # t = 0: the robot holds the prior
-            return self._send
+            return self._decide("nothing measured yet")
         wrapped = np.append(held, float(age))
         if calls == 1:
             self.replica.reset(wrapped)
@@ -164,14 +166,22 @@ class QosPlanner:
             self._updates = self.replica.updates
             modes = self.replica.mode_probabilities
             changing = modes["change"] + modes["start"]  # a speed step, a slip, a restart
-            self._surprised = self.replica.last_nis > self.nis_limit or changing > self.change_gate
+            surprise = self.replica.last_nis > self.nis_limit or changing > self.change_gate
+            # Closing fingers push the object themselves: no belt event to chase then; and
+            # the first packet always surprises the prior (the lookahead plans the next).
+            self._surprised = surprise and not self._closing(held) and self._updates > 1
         if self.replica.updates == 0:
-            return self._send  # nothing measured yet
+            return self._decide("nothing measured yet")
         if self.replica.carried or self._lifted_now(held):
-            return self._skip
+            return self._decide(None)
         if self._surprised:
-            return self._send
-        return self._send if self._needed(held) else self._skip
+            return self._decide("surprise")
+        return self._decide(self._needed(held))
+
+    def _decide(self, reason: str | None) -> QosRequest:
+        """The request, ``high`` when there is a reason (kept in :attr:`reason`)."""
+        self.reason = reason
+        return self._skip if reason is None else self._send
 
     def _lifted_now(self, held: NDArray[np.float64]) -> bool:
         z = float(self.replica.state[2])
@@ -180,24 +190,24 @@ class QosPlanner:
         self._lifted = self._lifted or z > self._start_z + 0.03
         return self._lifted
 
-    def _needed(self, held: NDArray[np.float64]) -> bool:
-        """Whether a packet now is part of the cheapest schedule that meets the grasp."""
+    def _needed(self, held: NDArray[np.float64]) -> str | None:
+        """Why a packet now is needed (``None``: it is not): the uncertainty far from the
+        grasp, at the grasp point, or a packet now is part of the cheapest schedule."""
         tau = self.latency_steps
         soon = self.replica.position_std_ahead(1 + tau)
         if soon > self.far_std_m:
-            return True
+            return "far"
         steps = self.grasp_steps(held)
         self.planned_grasp_steps.append(steps)
         if steps <= 1 + tau or self._in_window(held):
             # At the grasp (the robot may wait there for a certain estimate): keep the
             # uncertainty the packet is used at within the tolerance; once the fingers close
             # (they only do on a certain estimate), within the looser closing tolerance.
-            closing = self._width is not None and float(np.mean(held[self._width])) < (
-                self.closing_width_m
-            )
-            return soon > (self.closing_std_m if closing else self.grasp_std_m)
+            if self._closing(held):
+                return "closing" if soon > self.closing_std_m else None
+            return "at the grasp" if soon > self.grasp_std_m else None
         if not self.lookahead:
-            return False
+            return None
         last = steps - tau  # the latest stamp (offset from t - 1) still useful at the grasp
         slots = list(range(2, last + 1))  # offset 1 is now (the packet of step t)
 
@@ -223,8 +233,14 @@ class QosPlanner:
 
         without = cheapest(False)
         if without == 0:
+            return None
+        return "plan" if without == math.inf or cheapest(True) < without else None
+
+    def _closing(self, held: NDArray[np.float64]) -> bool:
+        """The fingers are closing (or closed): their width is below ``closing_width_m``."""
+        if self._width is None:
             return False
-        return without == math.inf or cheapest(True) < without
+        return float(np.mean(held[self._width])) < self.closing_width_m
 
     def _in_window(self, held: NDArray[np.float64]) -> bool:
         """The gripper at the grasp point (over the object, at its height): closing, or
@@ -234,7 +250,8 @@ class QosPlanner:
         return lateral <= self.grasp_window_m and grip[2] - obj[2] < self.grasp_height_m
 
     def grasp_steps(self, held: NDArray[np.float64]) -> int:
-        """Planned steps from ``t - 1`` to the grasp: approach, descend, close."""
+        """Planned steps from ``t - 1`` to the grasp decision (where the controller's
+        uncertainty gate is met or not): approach, descend, then ``close_steps``."""
         obj = self.replica.state
         grip = held[self._gripper]
         dt = self.replica.control_period_s
