@@ -92,17 +92,24 @@ def test_reference_stacks_of_the_pipelines() -> None:
     def stacks(pipeline: str) -> list[tuple[str, str]]:
         return [(c.kind, e.kind) for c, e in reference_stacks(PIPELINES[pipeline]())]
 
-    assert stacks("model-based") == [("mpc", "predictor")]
+    assert stacks("model-based") == [("mpc", "predictor"), ("mpc", "belt_imm")]
     assert stacks("model-free") == [("sac", "mlp")]
     assert stacks("all") == [("sac", "mlp"), ("mpc", "predictor")]
     refs = fixed_references(PIPELINES["model-based"]())
-    assert [(r.kind, r.row.qos.options) for r in refs] == [
+    fixed = [
         ("blind", {"reliability": 0.0, "latency_steps": 1}),
         ("oracle", {"reliability": 1.0, "latency_steps": 0}),
         ("static", {"reliability": 1.0, "latency_steps": 1}),
     ]
+    assert [(r.kind, r.row.qos.options) for r in refs] == fixed * 2  # one set per stack
+    assert refs[3].row.name == "MPC + belt IMM, blind (q = 0)"
     sources = [r.name for r in random_sources(PIPELINES["model-based"]())]
-    assert sources == ["MPC, no estimator, rule QoS", "MPC + predictor, rule QoS (co-design)"]
+    assert sources == [
+        "MPC, no estimator, rule QoS",
+        "MPC + predictor, rule QoS (co-design)",
+        "MPC + belt IMM, event rule",
+        "MPC + belt IMM, QoS planner (co-design)",
+    ]
 
 
 def test_references_default_on_for_pipelines_off_for_given_rows() -> None:

@@ -65,6 +65,7 @@ _KIND_LABELS = {
     "mpc": "MPC",
     "mlp": "MLP",
     "lstm": "LSTM",
+    "belt_imm": "belt IMM",
     "predictor": "predictor",
     "scripted": "scripted",
     "toy_pick": "toy pick",

@@ -230,7 +230,6 @@ def model_based_rows() -> tuple[TableRow, ...]:
         TableRow("MPC + predictor, static QoS", _MPC, _PREDICTOR, _STATIC),
         TableRow("MPC, no estimator, rule QoS", _MPC, ComponentSpec("none"), _rule()),
         TableRow(CODESIGN_RULE_ROW, _MPC, _PREDICTOR, _rule()),
-        TableRow("MPC + belt IMM, static QoS", _MPC_GATED, _BELT_IMM, _STATIC),
         TableRow("MPC + belt IMM, event rule", _MPC_GATED, _BELT_IMM, _planner(lookahead=False)),
         TableRow(PLANNER_ROW, _MPC_GATED, _BELT_IMM, _planner()),
     )
@@ -300,7 +299,7 @@ its shipped checkpoints were trained on (they cannot read the realistic packet).
 
 _LEARNED_CONTROLLERS = ("sac",)
 _LEARNED_ESTIMATORS = ("mlp", "lstm")
-_MODEL_BASED = ("mpc", "predictor", "scripted", "toy_pick")
+_MODEL_BASED = ("mpc", "predictor", "belt_imm", "scripted", "toy_pick")
 
 
 def stack_of(row: TableRow) -> str:
