@@ -24,6 +24,7 @@ from codesign_mb.wifi import (
     replay,
     ru_plan,
 )
+from codesign_mb.wifi.admission import admit_lists, admit_ru_aware, must_serve_lists
 from codesign_mb.wifi.allocators import AdmissionGreedyAllocator, RuPacker
 from codesign_mb.wifi.tick_dp import TickDp, layout_value, size_values
 from codesign_mb.wifi.tick_milp import solve_tick_milp
@@ -205,3 +206,49 @@ def test_convex_builds_every_solver_model_up_front():
     assert sorted(alloc._models) == alloc._buckets
     ref = ConvexAllocator(ConvexAllocatorConfig(n_stations=4, hot_path=False))
     assert ref._cvx is not None and ref.problem.is_dpp()
+
+
+def _admission_reference(alloc, work, slack, ratio):
+    """``admit_lists``, ``must_serve_lists`` and the RU-size check, in plain Python."""
+    c = alloc.config.admission_capacity
+    keep = admit_lists(work.tolist(), slack.tolist(), ratio.tolist())
+    kept = [j for j, k in enumerate(keep) if k]
+
+    def shares():
+        return [c * x for x in must_serve_lists([work[j] for j in kept], [slack[j] for j in kept])]
+
+    def counts(must):
+        out = [0] * len(alloc.plan.sizes)
+        for x in must:
+            if x > 0:
+                out[alloc._packer.smallest_size_for(x * alloc._full_sd)] += 1
+        return out
+
+    must = shares()
+    while not alloc._dp.fits(counts(must)):
+        drop = max((q for q, x in enumerate(must) if x > 0), key=lambda q: (ratio[kept[q]], q))
+        del kept[drop]
+        must = shares()
+    out = np.zeros(len(work))
+    out[kept] = must
+    return np.isin(np.arange(len(work)), kept), out
+
+
+@pytest.mark.parametrize("bw", [20, 40, 80])
+def test_compiled_admission_equals_the_python_reference(bw):
+    alloc = TickOptimalAllocator(TickOptimalConfig(bandwidth_mhz=bw, n_stations=30))
+    rng = np.random.default_rng(bw)
+    dropped = 0  # ticks where the RU-size check rejected a frame the fluid test admitted
+    for _ in range(200):
+        n = int(rng.integers(1, 30))
+        slack = np.sort(rng.integers(1, 10, n)).astype(float)
+        work = rng.uniform(0.01, 2.0, n) * rng.choice([0.1, 1.0], n)
+        ratio = work / rng.choice([1.0, 3.0], n)
+        keep, must = admit_ru_aware(
+            work, slack, ratio, admission=True, capacity=0.95, **alloc._admission_args
+        )
+        ref_keep, ref_must = _admission_reference(alloc, work, slack, ratio)
+        assert keep.tolist() == ref_keep.tolist()
+        np.testing.assert_allclose(must, ref_must, atol=1e-12)
+        dropped += sum(admit_lists(work.tolist(), slack.tolist(), ratio.tolist())) > keep.sum()
+    assert dropped >= 10

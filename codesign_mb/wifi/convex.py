@@ -41,11 +41,11 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from codesign_mb.wifi.admission import admit_lists, must_serve_lists
+from codesign_mb.wifi.admission import admit_ru_aware
 from codesign_mb.wifi.allocators import RuPacker, TickDemand
 from codesign_mb.wifi.convex_qp import CvxpyQp, OsqpQp, QpShape
 from codesign_mb.wifi.phy import ru_plan
-from codesign_mb.wifi.tick_dp import TickDp, size_values
+from codesign_mb.wifi.tick_dp import TickDp
 
 __all__ = ["ConvexAllocator", "ConvexAllocatorConfig"]
 
@@ -161,54 +161,30 @@ class _Tick:
             )
         self.m = m
         act = np.flatnonzero((backlog > 0) & (e > 0))
-        slack_all = demand.slack_ticks[act]
-        act = act[np.argsort(slack_all, kind="stable")]  # deadline order, ties by index
+        act = act[np.argsort(demand.slack_ticks[act], kind="stable")]  # deadline order
         e_act = e[act]
         full, c = alloc._full_sd, cfg.admission_capacity
-        stations = act.tolist()
-        need = (backlog[act] / e_act).tolist()  # whole backlog in data subcarriers
-        work = (demand.head_bits[act] / (e_act * (full * c))).tolist()  # ticks at c bands/tick
-        slack = np.maximum(demand.slack_ticks[act], 1.0).tolist()
+        need = backlog[act] / e_act  # whole backlog in data subcarriers
+        work = demand.head_bits[act] / (e_act * (full * c))  # ticks at c bands per tick
+        slack = np.maximum(demand.slack_ticks[act], 1.0)
         ratio = work
         if cfg.admission and demand.weights is not None:
-            w = np.maximum(np.asarray(demand.weights, dtype=float)[act], 1e-12)
-            ratio = (np.asarray(work) / w).tolist()
-        if cfg.admission:
-            keep = admit_lists(work, slack, ratio)
-        else:
-            keep = [w <= s + 1e-9 for w, s in zip(work, slack, strict=True)]
+            ratio = work / np.maximum(np.asarray(demand.weights, dtype=float)[act], 1e-12)
+        keep, must = admit_ru_aware(
+            work, slack, ratio, admission=cfg.admission, capacity=c, **alloc._admission_args
+        )
         self.need_sc = need_sc = [0.0] * m
-        for i, x in zip(stations, need, strict=True):
+        for i, x in zip(act.tolist(), need.tolist(), strict=True):
             need_sc[i] = x
-        kept = [j for j, k in enumerate(keep) if k]
-        must = [c * x for x in must_serve_lists([work[j] for j in kept], [slack[j] for j in kept])]
-        if cfg.admission:  # RU-size-aware: the shares T, each rounded up to an RU, must fit
-            while kept and not alloc._dp.fits(alloc._must_size_counts(must)):
-                drop = max(
-                    (q for q, x in enumerate(must) if x > 0.0), key=lambda q: (ratio[kept[q]], q)
-                )
-                del kept[drop]
-                must = [
-                    c * x
-                    for x in must_serve_lists([work[j] for j in kept], [slack[j] for j in kept])
-                ]
-        order = [stations[j] for j in kept]
-        need = [need[j] for j in kept]
-        if len(kept) == len(stations):
-            self.rejected: list[int] = []
-        else:
-            taken = set(kept)
-            self.rejected = [i for j, i in enumerate(stations) if j not in taken]
-        self.order_list = order
-        self.order = np.array(order, dtype=np.int64)
-        j = len(order)
-        self.must = must  # must-serve shares T, as fractions of the band: sum <= c, fit RUs
+        self.order = order = act[keep]
+        self.order_list = order.tolist()
+        self.rejected: list[int] = act[~keep].tolist()
+        j = len(self.order_list)
+        self.t_max = t_max = must[keep]  # must-serve shares T (of the band): sum <= c, fit RUs
+        self.must = t_max.tolist()
         self.a = alloc._ones[:j]
         self.b = alloc._surplus[:j]
-        self.t_max = np.array(must)
-        self.z_max = np.array(
-            [max(min(x / full, 1.0) - y, 0.0) for x, y in zip(need, must, strict=True)]
-        )
+        self.z_max = np.maximum(np.minimum(need[keep] / full, 1.0) - t_max, 0.0)
 
     def full(self, n: int) -> tuple[NDArray, NDArray, NDArray, NDArray, NDArray]:
         """``a, b, T, Z, active`` for all ``n`` stations of the full model (0 if not in it)."""
@@ -241,6 +217,17 @@ class _TickAllocator:
         self._ones = np.ones(self._n)
         self._surplus = cfg.surplus_weight * cfg.surplus_decay ** np.arange(self._n, dtype=float)
         self._last: tuple[TickDemand, _Tick] | None = None
+        code = {26: 0, 52: 1, 106: 2, 242: 3, 484: 4}
+        self._admission_args = {
+            "full_sd": self._full_sd,
+            "size_sd_lo": self._packer.size_sd_lo,
+            "size_code": np.array([code.get(t, 4) for t in self.plan.sizes], dtype=np.int64),
+            "n_sub": self._dp.n_sub,
+            "extra": self._dp.extra,
+        }
+        self._all_sizes = np.ones((self._n, self._k), dtype=bool)
+        empty = np.zeros(0)  # compile (or load from numba's disk cache) before the first tick
+        admit_ru_aware(empty, empty, empty, admission=True, capacity=1.0, **self._admission_args)
 
     def _tick(self, demand: TickDemand) -> _Tick:
         if self._last is not None and self._last[0] is demand:
@@ -260,15 +247,6 @@ class _TickAllocator:
         tick = self._tick(demand)
         return tick.order.copy(), tick.a.copy(), tick.b.copy(), tick.t_max.copy(), tick.z_max.copy()
 
-    def _must_size_counts(self, must: list[float]) -> list[int]:
-        """RUs per size if every share ``T > 0`` gets the smallest RU carrying it."""
-        counts = [0] * self._k
-        sizes = self._packer.sizes_for(np.asarray(must) * self._full_sd)
-        for k, x in zip(sizes, must, strict=True):
-            if x > 0.0:  # shares of 0 need no RU
-                counts[k] += 1
-        return counts
-
     def _layout(self, tick: _Tick, allowed: NDArray[np.bool_] | None) -> NDArray[np.int64]:
         """The best layout of the admitted for the per-tick objective (sizes restricted to
         ``allowed``), then the spectrum left towards the whole backlog (``eq_round``)."""
@@ -276,8 +254,9 @@ class _TickAllocator:
         order = tick.order_list
         used = 0
         if order:
-            values = size_values(self._dp.frac_sd, tick.a, tick.b, tick.t_max, tick.z_max)
-            sizes, _ = self._dp.solve(values, allowed)
+            if allowed is None:
+                allowed = self._all_sizes[: len(order)]
+            sizes, _ = self._dp.solve_objective(tick.a, tick.b, tick.t_max, tick.z_max, allowed)
             used = self._dp.place(order, sizes, lay)
         rest = order + tick.rejected  # admitted first, then the rejected, deadline order
         if rest:

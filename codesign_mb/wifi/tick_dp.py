@@ -123,6 +123,48 @@ def _dp(
     return out, v_best
 
 
+@njit(cache=True)
+def _solve_objective(
+    frac_sd: np.ndarray,
+    a: np.ndarray,
+    b: np.ndarray,
+    t_max: np.ndarray,
+    z_max: np.ndarray,
+    allowed: np.ndarray,
+    choice_size: np.ndarray,
+    succ: np.ndarray,
+    pred: np.ndarray,
+) -> tuple[np.ndarray, float]:  # pragma: no cover - compiled
+    """:func:`size_values`, then :meth:`TickDp.solve` in one compiled call (the hot path)."""
+    m, k_count = allowed.shape
+    widest = k_count - 1
+    values = np.zeros((m, k_count))
+    for i in range(m):
+        for k in range(k_count):
+            if allowed[i, k]:
+                s = frac_sd[k]
+                over = min(max(s - t_max[i], 0.0), z_max[i])
+                values[i, k] = a[i] * min(s, t_max[i]) + b[i] * over
+    choice_values = np.zeros((m, choice_size.size))
+    for i in range(m):
+        for c in range(1, choice_size.size):
+            choice_values[i, c] = values[i, choice_size[c]]
+    picks, best = _dp(choice_values, succ, pred)
+    sizes = np.full(m, -1, dtype=np.int64)
+    for i in range(m):
+        if picks[i]:
+            sizes[i] = choice_size[picks[i]]
+    whole, who = best, -1
+    for i in range(m):
+        if values[i, widest] > whole:
+            whole, who = values[i, widest], i
+    if who >= 0:
+        sizes[:] = -1
+        sizes[who] = widest
+        best = whole
+    return sizes, best
+
+
 def _transitions(
     n_sub: int, extra: int, du: list[int], dc: list[int], dg: list[int]
 ) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
@@ -180,8 +222,9 @@ class TickDp:
         self._succ, self._pred = _transitions(self.n_sub, self.extra, du, dc, dg)
         self.frac_sd = packer.size_sd / float(plan.full_band_data_subcarriers)
         self._cols = np.maximum(self.choice_size, 0)
-        # warm the compiled kernel (loaded from numba's disk cache after the first process)
-        _dp(np.zeros((1, len(size_of))), self._succ, self._pred)
+        # compile (or load from numba's disk cache) before the first tick
+        one = np.zeros(1)
+        self.solve_objective(one, one, one, one, np.ones((1, len(sizes)), dtype=bool))
 
     def fits(self, size_counts: list[int] | NDArray[np.int64]) -> bool:
         """Whether RUs of these counts per size (``plan.sizes`` order) fit in one layout."""
@@ -217,6 +260,20 @@ class TickDp:
             sizes[i] = self.widest
             best = float(whole[i])
         return sizes, float(best)
+
+    def solve_objective(
+        self,
+        a: NDArray[np.float64],
+        b: NDArray[np.float64],
+        t_max: NDArray[np.float64],
+        z_max: NDArray[np.float64],
+        allowed: NDArray[np.bool_],
+    ) -> tuple[list[int], float]:
+        """:meth:`solve` of :func:`size_values` ``(a, b, T, Z)``, in one compiled call."""
+        sizes, best = _solve_objective(
+            self.frac_sd, a, b, t_max, z_max, allowed, self._cols, self._succ, self._pred
+        )
+        return sizes.tolist(), float(best)
 
     def place(self, stations: list[int], sizes: list[int], lay: list[int]) -> int:
         """Give ``stations[j]`` an RU of size ``sizes[j]`` in ``lay`` (largest first, best fit);
