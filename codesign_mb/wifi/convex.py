@@ -218,7 +218,7 @@ class _TickAllocator:
         self._surplus = cfg.surplus_weight * cfg.surplus_decay ** np.arange(self._n, dtype=float)
         self._last: tuple[TickDemand, _Tick] | None = None
         code = {26: 0, 52: 1, 106: 2, 242: 3, 484: 4}
-        self._admission_args = {
+        self._admission_args: dict[str, Any] = {
             "full_sd": self._full_sd,
             "size_sd_lo": self._packer.size_sd_lo,
             "size_code": np.array([code.get(t, 4) for t in self.plan.sizes], dtype=np.int64),
