@@ -33,7 +33,14 @@ import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
-__all__ = ["admit_edf", "admit_lists", "admit_ru_aware", "must_serve", "must_serve_lists"]
+__all__ = [
+    "admit_edf",
+    "admit_lists",
+    "admit_ru_aware",
+    "must_serve",
+    "must_serve_lists",
+    "tick_admission",
+]
 
 
 def admit_edf(
@@ -243,3 +250,90 @@ def admit_ru_aware(
         n_sub,
         extra,
     )
+
+
+@njit(cache=True)
+def _tick_kernel(
+    backlog: np.ndarray,
+    head: np.ndarray,
+    slack_ticks: np.ndarray,
+    e: np.ndarray,
+    weights: np.ndarray,
+    admission: bool,
+    c: float,
+    full_sd: float,
+    size_sd_lo: np.ndarray,
+    code: np.ndarray,
+    n_sub: int,
+    extra: int,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:  # pragma: no cover - compiled
+    """Stations with a queue in deadline order, then :func:`_admit_kernel` on their frames."""
+    m = backlog.size
+    count = 0
+    for i in range(m):
+        if backlog[i] > 0.0 and e[i] > 0.0:
+            count += 1
+    act = np.empty(count, dtype=np.int64)
+    j = 0
+    for i in range(m):
+        if backlog[i] > 0.0 and e[i] > 0.0:
+            act[j] = i
+            j += 1
+    act = act[np.argsort(slack_ticks[act], kind="mergesort")]  # stable: ties by index
+    work, slack, ratio, need = np.empty(count), np.empty(count), np.empty(count), np.empty(count)
+    for q in range(count):
+        i = act[q]
+        need[q] = backlog[i] / e[i]
+        work[q] = head[i] / (e[i] * (full_sd * c))
+        slack[q] = max(slack_ticks[i], 1.0)
+        ratio[q] = work[q]
+        if admission and weights.size:
+            ratio[q] = work[q] / max(weights[i], 1e-12)
+    keep, must = _admit_kernel(
+        work, slack, ratio, admission, c, full_sd, size_sd_lo, code, code.size - 1, n_sub, extra
+    )
+    return act, keep, must, need
+
+
+def tick_admission(
+    backlog_bits: NDArray[np.float64],
+    head_bits: NDArray[np.float64],
+    slack_ticks: NDArray[np.float64],
+    bits_per_subcarrier: NDArray[np.float64],
+    weights: NDArray[np.float64] | None,
+    *,
+    admission: bool,
+    capacity: float,
+    full_sd: float,
+    size_sd_lo: NDArray[np.float64],
+    size_code: NDArray[np.int64],
+    n_sub: int,
+    extra: int,
+) -> tuple[NDArray[np.int64], NDArray[np.bool_], NDArray[np.float64], NDArray[np.float64]]:
+    """One tick's admission from its demand, compiled: :func:`admit_ru_aware` of the head
+    frames of the stations with a queue, in deadline order (ties: lower index).
+
+    Returns those stations, the admitted mask, the must-serve shares (of the band) and each
+    one's whole backlog in data subcarriers (all aligned with the stations).
+    """
+
+    def f64(x: NDArray[np.float64]) -> NDArray[np.float64]:
+        return np.ascontiguousarray(x, dtype=np.float64)
+
+    return _tick_kernel(
+        f64(backlog_bits),
+        f64(head_bits),
+        f64(slack_ticks),
+        f64(bits_per_subcarrier),
+        _NO_WEIGHTS if weights is None else f64(weights),
+        admission,
+        float(capacity),
+        float(full_sd),
+        size_sd_lo,
+        size_code,
+        n_sub,
+        extra,
+    )
+
+
+_NO_WEIGHTS = np.zeros(0)

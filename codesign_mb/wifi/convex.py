@@ -41,7 +41,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from codesign_mb.wifi.admission import admit_ru_aware
+from codesign_mb.wifi.admission import tick_admission
 from codesign_mb.wifi.allocators import RuPacker, TickDemand
 from codesign_mb.wifi.convex_qp import CvxpyQp, OsqpQp, QpShape
 from codesign_mb.wifi.phy import ru_plan
@@ -160,22 +160,19 @@ class _Tick:
                 f"demand has {m} stations but the allocator was built for n_stations={alloc._n}"
             )
         self.m = m
-        act = np.flatnonzero((backlog > 0) & (e > 0))
-        act = act[np.argsort(demand.slack_ticks[act], kind="stable")]  # deadline order
-        e_act = e[act]
-        full, c = alloc._full_sd, cfg.admission_capacity
-        need = backlog[act] / e_act  # whole backlog in data subcarriers
-        work = demand.head_bits[act] / (e_act * (full * c))  # ticks at c bands per tick
-        slack = np.maximum(demand.slack_ticks[act], 1.0)
-        ratio = work
-        if cfg.admission and demand.weights is not None:
-            ratio = work / np.maximum(np.asarray(demand.weights, dtype=float)[act], 1e-12)
-        keep, must = admit_ru_aware(
-            work, slack, ratio, admission=cfg.admission, capacity=c, **alloc._admission_args
+        act, keep, must, need = tick_admission(
+            backlog,
+            demand.head_bits,
+            demand.slack_ticks,
+            e,
+            demand.weights,
+            admission=cfg.admission,
+            capacity=cfg.admission_capacity,
+            **alloc._admission_args,
         )
-        self.need_sc = need_sc = [0.0] * m
-        for i, x in zip(act.tolist(), need.tolist(), strict=True):
-            need_sc[i] = x
+        need_sc = np.zeros(m)
+        need_sc[act] = need  # whole backlog in data subcarriers
+        self.need_sc = need_sc.tolist()
         self.order = order = act[keep]
         self.order_list = order.tolist()
         self.rejected: list[int] = act[~keep].tolist()
@@ -184,7 +181,7 @@ class _Tick:
         self.must = t_max.tolist()
         self.a = alloc._ones[:j]
         self.b = alloc._surplus[:j]
-        self.z_max = np.maximum(np.minimum(need[keep] / full, 1.0) - t_max, 0.0)
+        self.z_max = np.maximum(np.minimum(need[keep] / alloc._full_sd, 1.0) - t_max, 0.0)
 
     def full(self, n: int) -> tuple[NDArray, NDArray, NDArray, NDArray, NDArray]:
         """``a, b, T, Z, active`` for all ``n`` stations of the full model (0 if not in it)."""
@@ -227,7 +224,9 @@ class _TickAllocator:
         }
         self._all_sizes = np.ones((self._n, self._k), dtype=bool)
         empty = np.zeros(0)  # compile (or load from numba's disk cache) before the first tick
-        admit_ru_aware(empty, empty, empty, admission=True, capacity=1.0, **self._admission_args)
+        tick_admission(
+            empty, empty, empty, empty, None, admission=True, capacity=1.0, **self._admission_args
+        )
 
     def _tick(self, demand: TickDemand) -> _Tick:
         if self._last is not None and self._last[0] is demand:
