@@ -11,6 +11,7 @@ from functools import cache
 import numpy as np
 import pytest
 
+from codesign_mb.bench.allocators import GAP_SEED, gaps_to_tick_milp, random_tick
 from codesign_mb.core import registry
 from codesign_mb.wifi import (
     ChannelConfig,
@@ -33,26 +34,13 @@ from codesign_mb.wifi.tick_optimal import TickOptimalAllocator, TickOptimalConfi
 CELL = WifiConfig(channel=ChannelConfig(fixed_mcs=1, q0=0.9, rician_k_db=math.inf))
 
 
-def _instance(rng: np.random.Generator, index: int) -> TickDemand:
-    """A random tick at 40 MHz: 2-24 stations; every third heavily loaded (3x the backlog,
-    short deadlines), every third light."""
-    n = int(rng.integers(2, 25))
-    load = (0.3, 1.0, 3.0)[index % 3]
-    backlog = rng.uniform(0, 120_000, n) * load * (rng.random(n) < 0.85)
-    backlog[0] = max(backlog[0], 1_000.0)  # at least one station with a queue
-    head = np.minimum(backlog, rng.uniform(500, 110_000, n) * load)
-    slack = rng.integers(1, 40 if index % 3 < 2 else 8, n).astype(float)
-    e = rng.choice([0.5, 1.0, 1.5, 3.0, 5.0], n) * 40
-    return TickDemand(backlog, head, slack, e)
-
-
 @cache
 def _gaps(count: int) -> dict[str, np.ndarray]:
     """Relative gap of each allocator's layout to the MILP optimum on ``count`` instances."""
-    rng = np.random.default_rng(2017)
+    rng = np.random.default_rng(GAP_SEED)
     gaps: dict[str, list[float]] = {"convex": [], "tick_optimal": []}
     for index in range(count):
-        d = _instance(rng, index)
+        d = random_tick(rng, index)
         n = d.n_stations
         allocs = {
             "convex": ConvexAllocator(ConvexAllocatorConfig(n_stations=n)),
@@ -90,6 +78,14 @@ def test_rounded_layout_within_2_percent_of_the_milp_on_100_instances():
 
 def test_rounded_layout_near_the_milp_small():
     _check_gaps(_gaps(15))
+
+
+def test_bench_reports_the_gaps_the_test_measures():
+    report = gaps_to_tick_milp(6)
+    gaps = _gaps(6)
+    for name in ("convex", "tick_optimal"):
+        assert report[name]["median"] == np.median(gaps[name])
+        assert report[name]["max"] == gaps[name].max()
 
 
 @pytest.mark.parametrize("bw", [20, 40, 80])
@@ -145,7 +141,7 @@ def test_admission_asks_only_for_shares_one_layout_serves():
     frames are served in full by one layout (the MILP maximising must-serve service)."""
     rng = np.random.default_rng(17)
     for index in range(30):
-        d = _instance(rng, index)
+        d = random_tick(rng, index)
         alloc = ConvexAllocator(ConvexAllocatorConfig(n_stations=d.n_stations))
         order, a, _, t_max, _ = alloc.tick_objective(d)
         if order.size:
