@@ -68,9 +68,10 @@ class ConvexAllocatorConfig:
         relative to must-serve service (``a = 1``); in (0, 1).
     surplus_decay:
         ``gamma``: each later deadline's surplus value is this times the previous one's.
-        ``beta = 0.1, gamma = 0.2`` were chosen on 24 traces of the ``dev`` seed set (frames
-        delivered in time, among beta in {0.5, 0.2, 0.1, 0.05} x gamma in {0.5, 0.2, 0.1});
-        0.5, 0.5 delivered about 8 % fewer frames.
+        ``beta = 0.05, gamma = 0.2`` were chosen on 24 traces of the ``dev`` seed set (most
+        frames delivered in time by this and the tick-optimal allocator together, among beta
+        in {0.5, 0.2, 0.1, 0.05} x gamma in {0.5, 0.2, 0.1}; ``solvers/
+        select_tick_objective.py``); 0.5, 0.5 delivered 8 % fewer frames.
     admission:
         Admission control (``eq_admit``). ``False``: every frame that can make its deadline
         alone is admitted.
@@ -91,7 +92,7 @@ class ConvexAllocatorConfig:
     bandwidth_mhz: int = 40
     n_stations: int = 24
     regularization: float = 1e-2
-    surplus_weight: float = 0.1
+    surplus_weight: float = 0.05
     surplus_decay: float = 0.2
     admission: bool = True
     admission_capacity: float = 0.95

@@ -35,7 +35,7 @@ class TickOptimalConfig:
 
     bandwidth_mhz: int = 40
     n_stations: int = 24
-    surplus_weight: float = 0.1
+    surplus_weight: float = 0.05
     surplus_decay: float = 0.2
     admission: bool = True
     admission_capacity: float = 0.95
