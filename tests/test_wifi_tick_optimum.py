@@ -248,3 +248,30 @@ def test_compiled_admission_equals_the_python_reference(bw):
         np.testing.assert_allclose(must, ref_must, atol=1e-12)
         dropped += sum(admit_lists(work.tolist(), slack.tolist(), ratio.tolist())) > keep.sum()
     assert dropped >= 10
+
+
+@pytest.mark.parametrize("bw", [20, 40, 80])
+def test_grow_keeps_the_layout_valid_and_never_shrinks_an_ru(bw):
+    plan = ru_plan(bw)
+    packer = RuPacker(plan)
+    sd = [u.data_subcarriers for u in plan.units]
+    rng = np.random.default_rng(bw)
+    for _ in range(200):
+        n = int(rng.integers(1, 12))
+        lay, used = [-1] * n, 0
+        for i in range(n):  # a random valid start
+            r = packer.place(int(rng.integers(0, len(plan.sizes) - 1)), used)
+            if r >= 0 and rng.random() < 0.7:
+                lay[i], used = r, used | packer.mask[r]
+        before = list(lay)
+        need = rng.uniform(0, 600, n).tolist()
+        used = packer.grow(lay, used, need, list(range(n)))
+        assert plan.is_valid_layout(lay)
+        assert used == sum(packer.mask[r] for r in lay if r >= 0)
+        for i in range(n):
+            if before[i] >= 0:
+                assert sd[lay[i]] >= sd[before[i]]
+                # it grew as far as the spectrum left free allows (its own RU included)
+                free = used & ~packer.mask[lay[i]]
+                best = packer.place_at_most(packer.sizes_for(np.array([need[i]]))[0], free)
+                assert sd[lay[i]] >= min(sd[best], need[i])
