@@ -396,21 +396,7 @@ class ConvexAllocator(_TickAllocator):
         the support of its ``x``, the size just below or just above its relaxed service, or
         the smallest one carrying its must-serve share ``T``; the best such layout for the
         per-tick objective is found exactly (:class:`~codesign_mb.wifi.tick_dp.TickDp`)."""
-        j = len(tick.order_list)
-        allowed = np.zeros((j, self._k), dtype=bool)
-        if j:
-            packer, rows = self._packer, np.arange(j)
-            sd = np.asarray(served, dtype=float) * self._full_sd
-            up = np.minimum(np.searchsorted(packer.size_sd_lo, sd), self._k - 1)
-            down = np.searchsorted(packer.size_sd, sd * (1 + 1e-9), side="right") - 1
-            some = sd > 1e-3 * self._full_sd
-            allowed[rows[some], up[some]] = True
-            allowed[rows[down >= 0], down[down >= 0]] = True
-            t = tick.t_max * self._full_sd
-            must = np.minimum(np.searchsorted(packer.size_sd_lo, t), self._k - 1)
-            allowed[rows[t > 0], must[t > 0]] = True
-            if x is not None:
-                allowed |= x > 1e-3
+        allowed = self._dp.rounding_choices(served, x, tick.t_max)
         return self._layout(tick, allowed)
 
     def allocate(self, demand: TickDemand) -> NDArray[np.int64]:

@@ -165,6 +165,35 @@ def _solve_objective(
     return sizes, best
 
 
+@njit(cache=True)
+def _rounding_choices(
+    served: np.ndarray,
+    x: np.ndarray,
+    t_max: np.ndarray,
+    full_sd: float,
+    size_sd: np.ndarray,
+    size_sd_lo: np.ndarray,
+) -> np.ndarray:  # pragma: no cover - compiled
+    """:meth:`TickDp.rounding_choices`, compiled."""
+    m, k_count = served.size, size_sd.size
+    allowed = np.zeros((m, k_count), dtype=np.bool_)
+    for i in range(m):
+        sd = served[i] * full_sd
+        if sd > 1e-3 * full_sd:
+            allowed[i, min(np.searchsorted(size_sd_lo, sd), k_count - 1)] = True
+        down = np.searchsorted(size_sd, sd * (1 + 1e-9), side="right") - 1
+        if down >= 0:
+            allowed[i, down] = True
+        t = t_max[i] * full_sd
+        if t > 0.0:
+            allowed[i, min(np.searchsorted(size_sd_lo, t), k_count - 1)] = True
+        if x.shape[0] == m:
+            for k in range(k_count):
+                if x[i, k] > 1e-3:
+                    allowed[i, k] = True
+    return allowed
+
+
 def _transitions(
     n_sub: int, extra: int, du: list[int], dc: list[int], dg: list[int]
 ) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
@@ -225,6 +254,9 @@ class TickDp:
         # compile (or load from numba's disk cache) before the first tick
         one = np.zeros(1)
         self.solve_objective(one, one, one, one, np.ones((1, len(sizes)), dtype=bool))
+        self._no_x = np.zeros((0, len(sizes)))
+        self._size_sd = packer.size_sd.astype(np.float64)
+        self.rounding_choices(one, None, one)
 
     def fits(self, size_counts: list[int] | NDArray[np.int64]) -> bool:
         """Whether RUs of these counts per size (``plan.sizes`` order) fit in one layout."""
@@ -274,6 +306,26 @@ class TickDp:
             self.frac_sd, a, b, t_max, z_max, allowed, self._cols, self._succ, self._pred
         )
         return sizes.tolist(), float(best)
+
+    def rounding_choices(
+        self,
+        served: NDArray[np.float64],
+        x: NDArray[np.float64] | None,
+        t_max: NDArray[np.float64],
+    ) -> NDArray[np.bool_]:
+        """RU sizes each station may get when rounding a relaxed solution (``eq_round``):
+        the sizes in the support of its relaxed ``x`` (rows: stations; ``None``: none), the
+        sizes just below and just above its relaxed service ``served`` and the smallest
+        carrying its must-serve share ``T`` (both fractions of the band)."""
+        x = self._no_x if x is None else np.ascontiguousarray(x, dtype=np.float64)
+        return _rounding_choices(
+            np.ascontiguousarray(served, dtype=np.float64),
+            x,
+            np.ascontiguousarray(t_max, dtype=np.float64),
+            float(self.plan.full_band_data_subcarriers),
+            self._size_sd,
+            self.packer.size_sd_lo,
+        )
 
     def place(self, stations: list[int], sizes: list[int], lay: list[int]) -> int:
         """Give ``stations[j]`` an RU of size ``sizes[j]`` in ``lay`` (largest first, best fit);
