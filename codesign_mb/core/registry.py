@@ -28,9 +28,11 @@ qos_feat.  ``elapsed_time``   ``adaptation.learned.ElapsedTimeFeature`` (``t / T
 qos_feat.  ``predictor_std``  ``adaptation.learned.PredictorStdFeature`` on a predictor replica
 plant      ``conveyor``       ``plants.conveyor.ConveyorPickPlace`` (``ConveyorConfig`` options)
 plant      ``toy``            ``plants.toy.ToyConveyor`` (``ToyConveyorConfig`` options)
-allocator  ``greedy``         ``wifi.allocators.GreedyEdfAllocator``
+allocator  ``greedy``         ``wifi.allocators.GreedyEdfAllocator`` (the paper's, sec. 5)
+allocator  ``greedy-admit``   ``wifi.allocators.AdmissionGreedyAllocator`` (improved greedy)
 allocator  ``convex``         ``wifi.convex.ConvexAllocator`` (OSQP hot path)
 allocator  ``convex-cvxpy``   the same allocator solved through its cvxpy model
+allocator  ``tick-optimal``   ``wifi.tick_optimal.TickOptimalAllocator`` (exact per tick)
 ========== ================== ==========================================================
 
 Checkpoint paths are looked up relative to the working directory first, then to the
@@ -171,6 +173,8 @@ KINDS: dict[str, dict[str, Kind]] = {
         "greedy": Kind("codesign_mb.wifi.config:greedy_allocator"),
         "convex": Kind("codesign_mb.wifi.config:convex_allocator"),
         "convex-cvxpy": Kind("codesign_mb.wifi.config:convex_cvxpy_allocator"),
+        "greedy-admit": Kind("codesign_mb.wifi.allocators:admission_greedy_allocator"),
+        "tick-optimal": Kind("codesign_mb.wifi.tick_optimal:tick_optimal_allocator"),
     },
 }
 """role -> kind -> :class:`Kind`. Add a component by adding a row."""

@@ -18,7 +18,10 @@ admitted frames to stay feasible: ``T_j = c |[L_j, L_j + p_j/c] & [0, 1]|``, and
 c``.
 
 :func:`admit_edf` and :func:`must_serve` take and return arrays; :func:`admit_lists` and
-:func:`must_serve_lists` are the same on Python lists, the per-tick hot path's form.
+:func:`must_serve_lists` are the same on Python lists (the reference). :func:`admit_ru_aware`
+is the convex allocators' hot path, compiled: admission, the must-serve shares and the
+RU-size check (the shares, each rounded up to an RU size, must fit one layout; while they do
+not, the admitted frame with a share and the largest work per value is rejected).
 """
 
 from __future__ import annotations
@@ -27,9 +30,17 @@ import heapq
 import math
 
 import numpy as np
+from numba import njit
 from numpy.typing import NDArray
 
-__all__ = ["admit_edf", "admit_lists", "must_serve", "must_serve_lists"]
+__all__ = [
+    "admit_edf",
+    "admit_lists",
+    "admit_ru_aware",
+    "must_serve",
+    "must_serve_lists",
+    "tick_admission",
+]
 
 
 def admit_edf(
@@ -109,3 +120,220 @@ def must_serve_lists(work: list[float], slack: list[float]) -> list[float]:
             start = max(start, 0.0)
             must[j] = min(start + pj, 1.0) - start
     return must
+
+
+@njit(cache=True)
+def _fits(counts: np.ndarray, code: np.ndarray, widest: int, n_sub: int, extra: int) -> bool:
+    """:meth:`codesign_mb.wifi.tick_dp.TickDp.fits` (``code``: 0..4 for 26..484 tones)."""
+    if counts[widest] > 0:
+        return counts[widest] == 1 and counts.sum() == 1
+    by = np.zeros(5, dtype=np.int64)
+    for k in range(counts.size):
+        by[code[k]] += counts[k]
+    h = n_sub - by[3] - 2 * by[4]
+    if h < 0:
+        return False
+    centre = min(by[0], h + extra)
+    return (by[0] - centre) + 2 * by[1] + 4 * by[2] <= 8 * h
+
+
+@njit(cache=True)
+def _must_into(work: np.ndarray, slack: np.ndarray, keep: np.ndarray, out: np.ndarray) -> None:
+    """:func:`must_serve_lists` of the kept jobs, written into ``out`` (0 for the others)."""
+    out[:] = 0.0
+    cum = np.zeros(work.size)
+    total = 0.0
+    for j in range(work.size):
+        if keep[j]:
+            total += work[j]
+            cum[j] = total
+    latest = np.inf
+    for j in range(work.size - 1, -1, -1):
+        if not keep[j]:
+            continue
+        latest = min(latest, slack[j] - cum[j])
+        start = latest + cum[j] - work[j]
+        if start < 1.0:
+            start = max(start, 0.0)
+            out[j] = min(start + work[j], 1.0) - start
+
+
+@njit(cache=True)
+def _admit_kernel(
+    work: np.ndarray,
+    slack: np.ndarray,
+    ratio: np.ndarray,
+    admission: bool,
+    c: float,
+    full_sd: float,
+    size_sd_lo: np.ndarray,
+    code: np.ndarray,
+    widest: int,
+    n_sub: int,
+    extra: int,
+) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover - compiled
+    """:func:`admit_lists`, the must-serve shares (times ``c``) and the RU-size check."""
+    n = work.size
+    keep = np.zeros(n, dtype=np.bool_)
+    total = 0.0
+    for j in range(n):
+        sj = slack[j] + 1e-9
+        if work[j] > sj:
+            continue
+        keep[j] = True
+        if not admission:
+            continue
+        total += work[j]
+        if total > sj:  # reject the largest ratio (ties: the later deadline)
+            worst = -1
+            for q in range(j + 1):
+                if keep[q] and (worst < 0 or ratio[q] >= ratio[worst]):
+                    worst = q
+            keep[worst] = False
+            total -= work[worst]
+    must = np.zeros(n)
+    _must_into(work, slack, keep, must)
+    must *= c
+    counts = np.zeros(size_sd_lo.size, dtype=np.int64)
+    while admission:
+        counts[:] = 0
+        for j in range(n):
+            if keep[j] and must[j] > 0.0:
+                k = np.searchsorted(size_sd_lo, must[j] * full_sd)
+                counts[min(k, size_sd_lo.size - 1)] += 1
+        if _fits(counts, code, widest, n_sub, extra):
+            break
+        worst = -1
+        for q in range(n):
+            if keep[q] and must[q] > 0.0 and (worst < 0 or ratio[q] >= ratio[worst]):
+                worst = q
+        keep[worst] = False
+        _must_into(work, slack, keep, must)
+        must *= c
+    return keep, must
+
+
+def admit_ru_aware(
+    work: NDArray[np.float64],
+    slack: NDArray[np.float64],
+    ratio: NDArray[np.float64],
+    *,
+    admission: bool,
+    capacity: float,
+    full_sd: float,
+    size_sd_lo: NDArray[np.float64],
+    size_code: NDArray[np.int64],
+    n_sub: int,
+    extra: int,
+) -> tuple[NDArray[np.bool_], NDArray[np.float64]]:
+    """The per-tick admission of the convex allocators, compiled (their hot path).
+
+    Jobs in deadline order (``work`` in ticks at ``capacity`` bands per tick). With
+    ``admission``: :func:`admit_lists` (ratio ``work / weight``), then while the must-serve
+    shares ``capacity * must_serve`` of the admitted, each rounded up to the smallest RU size
+    carrying it (``size_sd_lo``: the sizes' data subcarriers, ``full_sd`` the band's), do not
+    fit one layout (``size_code`` 0..4 for 26..484 tones, ``n_sub`` 242-tone sub-channels,
+    ``extra`` centre units outside them), the admitted job with a share of the largest ratio
+    (ties: the later deadline) is rejected. Without: every job that can make it alone. Returns
+    the admitted mask and the shares (fractions of the band, 0 for the rejected).
+    """
+    return _admit_kernel(
+        np.ascontiguousarray(work, dtype=np.float64),
+        np.ascontiguousarray(slack, dtype=np.float64),
+        np.ascontiguousarray(ratio, dtype=np.float64),
+        admission,
+        float(capacity),
+        float(full_sd),
+        size_sd_lo,
+        size_code,
+        len(size_code) - 1,
+        n_sub,
+        extra,
+    )
+
+
+@njit(cache=True)
+def _tick_kernel(
+    backlog: np.ndarray,
+    head: np.ndarray,
+    slack_ticks: np.ndarray,
+    e: np.ndarray,
+    weights: np.ndarray,
+    admission: bool,
+    c: float,
+    full_sd: float,
+    size_sd_lo: np.ndarray,
+    code: np.ndarray,
+    n_sub: int,
+    extra: int,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:  # pragma: no cover - compiled
+    """Stations with a queue in deadline order, then :func:`_admit_kernel` on their frames."""
+    m = backlog.size
+    count = 0
+    for i in range(m):
+        if backlog[i] > 0.0 and e[i] > 0.0:
+            count += 1
+    act = np.empty(count, dtype=np.int64)
+    j = 0
+    for i in range(m):
+        if backlog[i] > 0.0 and e[i] > 0.0:
+            act[j] = i
+            j += 1
+    act = act[np.argsort(slack_ticks[act], kind="mergesort")]  # stable: ties by index
+    work, slack, ratio, need = np.empty(count), np.empty(count), np.empty(count), np.empty(count)
+    for q in range(count):
+        i = act[q]
+        need[q] = backlog[i] / e[i]
+        work[q] = head[i] / (e[i] * (full_sd * c))
+        slack[q] = max(slack_ticks[i], 1.0)
+        ratio[q] = work[q]
+        if admission and weights.size:
+            ratio[q] = work[q] / max(weights[i], 1e-12)
+    keep, must = _admit_kernel(
+        work, slack, ratio, admission, c, full_sd, size_sd_lo, code, code.size - 1, n_sub, extra
+    )
+    return act, keep, must, need
+
+
+def tick_admission(
+    backlog_bits: NDArray[np.float64],
+    head_bits: NDArray[np.float64],
+    slack_ticks: NDArray[np.float64],
+    bits_per_subcarrier: NDArray[np.float64],
+    weights: NDArray[np.float64] | None,
+    *,
+    admission: bool,
+    capacity: float,
+    full_sd: float,
+    size_sd_lo: NDArray[np.float64],
+    size_code: NDArray[np.int64],
+    n_sub: int,
+    extra: int,
+) -> tuple[NDArray[np.int64], NDArray[np.bool_], NDArray[np.float64], NDArray[np.float64]]:
+    """One tick's admission from its demand, compiled: :func:`admit_ru_aware` of the head
+    frames of the stations with a queue, in deadline order (ties: lower index).
+
+    Returns those stations, the admitted mask, the must-serve shares (of the band) and each
+    one's whole backlog in data subcarriers (all aligned with the stations).
+    """
+
+    def f64(x: NDArray[np.float64]) -> NDArray[np.float64]:
+        return np.ascontiguousarray(x, dtype=np.float64)
+
+    return _tick_kernel(
+        f64(backlog_bits),
+        f64(head_bits),
+        f64(slack_ticks),
+        f64(bits_per_subcarrier),
+        _NO_WEIGHTS if weights is None else f64(weights),
+        admission,
+        float(capacity),
+        float(full_sd),
+        size_sd_lo,
+        size_code,
+        n_sub,
+        extra,
+    )
+
+
+_NO_WEIGHTS = np.zeros(0)

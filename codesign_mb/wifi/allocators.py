@@ -16,31 +16,42 @@ Allocators
     The paper's two-stage heuristic (sec. 5): stations in deadline order, each given the
     smallest RU that finishes its head frame by its deadline if served every remaining tick
     (``eq_greedy``); the largest free RU when none suffices; unused spectrum stays idle.
+:class:`AdmissionGreedyAllocator`
+    The improved greedy: admission control (``eq_admit``), the paper's rule for the admitted
+    frames, spectrum left over to the backlog in deadline order.
 :class:`~codesign_mb.wifi.convex.ConvexAllocator`
-    Admission control (``eq_admit``, :mod:`codesign_mb.wifi.admission`), then the per-tick QP
-    relaxation ``eq_qp`` (:mod:`codesign_mb.wifi.convex_qp`), rounded to a valid layout
-    (``eq_round``).
+    Admission control (``eq_admit``, RU-size-aware), then the per-tick QP relaxation
+    ``eq_qp`` (:mod:`codesign_mb.wifi.convex_qp`), rounded to a valid layout (``eq_round``).
+:class:`~codesign_mb.wifi.tick_optimal.TickOptimalAllocator`
+    The same admission, then the exact per-tick optimum of the objective of ``eq_qp``
+    (:mod:`codesign_mb.wifi.tick_dp`).
 
-Both place RUs with :class:`RuPacker` (best fit in the free spectrum, memoised).
+All place RUs with :class:`RuPacker` (best fit in the free spectrum, memoised).
 """
 
 from __future__ import annotations
 
 import bisect
 from dataclasses import dataclass, field
-from typing import Protocol, runtime_checkable
+from typing import TYPE_CHECKING, Protocol, runtime_checkable
 
 import numpy as np
 from numpy.typing import NDArray
 
+from codesign_mb.wifi.admission import admit_lists
 from codesign_mb.wifi.phy import RuPlan, ru_plan
 
+if TYPE_CHECKING:
+    from codesign_mb.wifi.config import WifiConfig
+
 __all__ = [
+    "AdmissionGreedyAllocator",
     "Allocator",
     "GreedyEdfAllocator",
     "ReportsFallbacks",
     "RuPacker",
     "TickDemand",
+    "admission_greedy_allocator",
     "layout_is_valid",
     "served_bits",
 ]
@@ -257,6 +268,30 @@ class RuPacker:
             used = self.seat(lay, used, need, order)
         return used
 
+    def grow(self, lay: list[int], used: int, need: list[float], order: list[int]) -> int:
+        """Give spectrum away towards ``need`` (data subcarriers), stations in ``order``: each
+        station's RU is replaced by the largest free one (its own included) up to the smallest
+        carrying its need, when larger; then stations without an RU are seated (:meth:`seat`).
+
+        Unlike :meth:`fill`, an RU may move, so a neighbour does not block its growth.
+        """
+        sd, mask, full, lo = self.sd_list, self.mask, self.full, self.size_sd_lo_list
+        last = len(lo) - 1
+        for i in order:
+            if used == full:
+                return used
+            r = lay[i]
+            if r < 0 or sd[r] >= need[i]:
+                continue
+            without = used & ~mask[r]
+            r2 = self.place_at_most(min(bisect.bisect_left(lo, need[i]), last), without)
+            if sd[r2] > sd[r]:
+                lay[i] = r2
+                used = without | mask[r2]
+        if used != full:
+            used = self.seat(lay, used, need, order)
+        return used
+
 
 # --------------------------------------------------------------------------- greedy
 
@@ -313,3 +348,77 @@ class GreedyEdfAllocator:
                 break
         layout[:] = lay
         return layout
+
+
+@dataclass
+class AdmissionGreedyAllocator:
+    """The improved greedy: the paper's rule for the admitted frames, the rest of the band to
+    the backlog (deadline order).
+
+    1. Admission (``eq_admit``, :func:`~codesign_mb.wifi.admission.admit_lists`): the largest
+       set of head frames earliest-deadline-first finishes in time on a band serving
+       ``admission_capacity`` full bands per tick (weighted by ``demand.weights``).
+    2. The admitted, in deadline order, get the smallest free RU that finishes the head frame
+       by its deadline if served every remaining tick (``eq_greedy``), or the largest free one.
+    3. Spectrum left over: RUs grow in place, and stations without one are seated, towards the
+       whole backlog, admitted stations first, then the rejected, each in deadline order.
+
+    Unlike :class:`GreedyEdfAllocator`, hopeless frames get no spectrum ahead of frames that
+    can still make it (under overload the paper's greedy spends the band on them), and no
+    spectrum stays idle while a station has backlog.
+    """
+
+    bandwidth_mhz: int = 40
+    admission_capacity: float = 0.95
+    plan: RuPlan = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        self.plan = ru_plan(self.bandwidth_mhz)
+        if not 0.0 < self.admission_capacity <= 1.0:
+            raise ValueError(
+                f"admission_capacity must be in (0, 1], got {self.admission_capacity!r}"
+            )
+        self._packer = RuPacker(self.plan)
+        self._full_sd = float(self.plan.full_band_data_subcarriers)
+
+    def allocate(self, demand: TickDemand) -> NDArray[np.int64]:
+        n = demand.n_stations
+        e = demand.bits_per_subcarrier
+        active = np.flatnonzero((demand.backlog_bits > 0) & (e > 0))
+        if active.size == 0:
+            return np.full(n, -1, dtype=np.int64)
+        order = active[np.argsort(demand.slack_ticks[active], kind="stable")]
+        slack = np.maximum(demand.slack_ticks[order], 1.0)
+        head, e_o = demand.head_bits[order], e[order]
+        work = head / (e_o * self._full_sd * self.admission_capacity)  # ticks of the band
+        ratio = None
+        if demand.weights is not None:
+            ratio = (work / np.maximum(np.asarray(demand.weights, float)[order], 1e-12)).tolist()
+        keep = admit_lists(work.tolist(), slack.tolist(), ratio)
+        stations = order.tolist()
+        admitted = [i for i, k in zip(stations, keep, strict=True) if k]
+        rejected = [i for i, k in zip(stations, keep, strict=True) if not k]
+        packer = self._packer
+        need = (head / (slack * e_o)).tolist()  # eq_greedy, subcarriers per tick
+        sizes = packer.sizes_for(np.asarray(need))
+        lay, used, largest = [-1] * n, 0, len(packer.sizes) - 1
+        for i, k, x, ok in zip(stations, sizes, need, keep, strict=True):
+            if not ok:
+                continue
+            r = packer.place_at_least(k, used) if packer.size_sd_list[k] >= x * (1 - 1e-9) else -1
+            if r < 0:
+                r = packer.place_at_most(largest, used)
+            if r < 0:
+                break
+            lay[i] = r
+            used |= packer.mask[r]
+        backlog = [0.0] * n
+        for i, x in zip(stations, (demand.backlog_bits[order] / e_o).tolist(), strict=True):
+            backlog[i] = x
+        packer.grow(lay, used, backlog, admitted + rejected)
+        return np.asarray(lay, dtype=np.int64)
+
+
+def admission_greedy_allocator(config: WifiConfig, n_stations: int) -> AdmissionGreedyAllocator:
+    """The improved greedy for the cell of ``config`` (registry kind ``greedy-admit``)."""
+    return AdmissionGreedyAllocator(config.phy.bandwidth_mhz)
