@@ -64,6 +64,10 @@ class QosPlanner:
     far_std_m:
         Ask whenever the uncertainty one packet ahead exceeds this, wherever the gripper is
         (keeps the approach on the object; ``inf``: never).
+    grasp_window_m, grasp_height_m:
+        The grasp point: the gripper within these of the estimated object laterally and in
+        height (the MPC's own grasp conditions, ``grasp_tolerance_m`` and
+        ``grasp_height_tolerance_m`` of :class:`~codesign_mb.control.mpc_config.MpcConfig`).
     closing_std_m:
         The tolerance while the fingers close (finger width below ``closing_width_m``;
         ``None``: 1.5 ``grasp_std_m``): across the object the fingers leave room, a packet
@@ -89,8 +93,8 @@ class QosPlanner:
         descend_speed_mps: float = 0.3,
         close_steps: int = 0,
         hover_height_m: float = 0.06,
-        grasp_window_m: float = 0.03,
-        grasp_height_m: float = 0.02,
+        grasp_window_m: float = 0.012,
+        grasp_height_m: float = 0.015,
         closing_std_m: float | None = None,
         closing_width_m: float = 0.075,
         max_lookahead_steps: int = 40,

@@ -152,10 +152,13 @@ PLANNER_ROW = "MPC + belt IMM, QoS planner (co-design)"
 """The model-based co-design of the belt-aware stack: uncertainty-aware MPC, IMM, planner."""
 
 PLANNER_GRASP_STD_M = 0.01
-"""The planner's grasp tolerance (RMS, m) and the MPC's grasp gate: chosen on dev seeds."""
+"""The planner's lateral grasp tolerance (RMS, m) and the MPC's grasp gate (dev seeds)."""
 
-PLANNER_FAR_STD_M = 0.025
-"""Uncertainty (RMS, m) above which the planner asks wherever the gripper is (dev seeds)."""
+PLANNER_FAR_STD_M = 0.035
+"""Uncertainty (lateral RMS, m) above which the planner asks wherever the gripper is."""
+
+PLANNER_CLOSING_STD_M = 0.02
+"""The planner's tolerance while the fingers close (lateral RMS, m)."""
 
 _MPC_GATED = ComponentSpec("mpc", options={"config": {"grasp_std_gate_m": PLANNER_GRASP_STD_M}})
 _BELT_IMM = ComponentSpec("belt_imm")
@@ -164,7 +167,11 @@ _BELT_IMM = ComponentSpec("belt_imm")
 def _planner(*, lookahead: bool = True) -> ComponentSpec:
     """The QoS planner (``lookahead=False``: the event-triggered rule) at the dev-chosen
     tolerances."""
-    options = {"grasp_std_m": PLANNER_GRASP_STD_M, "far_std_m": PLANNER_FAR_STD_M}
+    options = {
+        "grasp_std_m": PLANNER_GRASP_STD_M,
+        "far_std_m": PLANNER_FAR_STD_M,
+        "closing_std_m": PLANNER_CLOSING_STD_M,
+    }
     return ComponentSpec("planner", options={**options, "lookahead": lookahead})
 
 
