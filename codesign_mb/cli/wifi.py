@@ -22,7 +22,13 @@ from codesign_mb.cli.common import (
     track,
 )
 
-__all__ = ["capacity_command", "phy_table_command", "register", "trace_command"]
+__all__ = [
+    "capacity_command",
+    "crosscheck_command",
+    "phy_table_command",
+    "register",
+    "trace_command",
+]
 
 
 def _parse_robots(text: str) -> tuple[int, ...]:
@@ -181,6 +187,68 @@ def capacity_command(
     emit(curves, as_json=as_json, title="task success vs robots (fig_wifi)")
 
 
+def crosscheck_command(
+    mcs: Annotated[str, typer.Option("--mcs", help="MCS values, comma separated.")] = "0,3,7",
+    captures: Annotated[
+        str, typer.Option("--captures", help="staggered, synchronised or both, comma separated.")
+    ] = "staggered,synchronised",
+    schedulers: Annotated[
+        str, typer.Option("--schedulers", help="Our allocators, comma separated.")
+    ] = "greedy",
+    ns3: Annotated[
+        str, typer.Option("--ns3", help="ns-3 access schemes: su, ofdma (comma separated) or none.")
+    ] = "su,ofdma",
+    max_stations: Annotated[
+        int, typer.Option("--max-stations", help="Upper end of the capacity search.")
+    ] = 64,
+    periods: Annotated[
+        int, typer.Option("--periods", help="40 ms periods counted per run (after 2 warm-up).")
+    ] = 8,
+    out: Annotated[
+        Path | None, typer.Option("--out", help="Also write the table and assumptions (JSON).")
+    ] = None,
+    as_json: JsonOption = False,
+) -> None:
+    """Capacity (robots with >= 95 % of frames in 40 ms) of our cell model and of ns-3's.
+
+    Same traffic both sides: N stations, 13,500 B up and 32 B down per 40 ms, one fixed MCS,
+    no channel errors. ns-3 (optional dependency: pip install 'codesign-mb[ns3]') runs its
+    802.11ax model single-user (EDCA) and with its round-robin OFDMA scheduler.
+    """
+    import json
+
+    from codesign_mb.core.results import atomic_write
+    from codesign_mb.wifi.crosscheck import CrosscheckConfig, assumptions, crosscheck
+
+    access = () if ns3.strip() in ("", "none") else tuple(a.strip() for a in ns3.split(","))
+    if access:
+        from codesign_mb.wifi.ns3_driver import ns3_available
+
+        if not ns3_available():
+            raise ValueError("ns-3 is not installed: pip install 'codesign-mb[ns3]', or --ns3 none")
+    cfg = CrosscheckConfig(
+        mcs=tuple(int(m) for m in mcs.split(",")),
+        captures=tuple(c.strip() for c in captures.split(",")),
+        schedulers=tuple(s.strip() for s in schedulers.split(",")),
+        ns3_access=access,
+        max_stations=max_stations,
+        periods=periods,
+    )
+    rows = crosscheck(cfg, progress=None if as_json else note)
+    table = [{k: v for k, v in r.items() if not k.endswith("_fractions")} for r in rows]
+    report = {"rows": rows, "assumptions": assumptions(cfg), "tolerance": cfg.tolerance}
+    if out is not None:
+        with atomic_write(out, "w") as fh:
+            json.dump(report, fh, indent=1)
+        note(f"wrote {out}")
+    if as_json:
+        emit(report, as_json=True)
+    else:
+        emit(table, as_json=False, title="capacity (robots at 95 % delivered): ours vs ns-3")
+        for name, text in report["assumptions"].items():
+            note(f"{name}: {text}")
+
+
 def register(app: typer.Typer) -> None:
     """Add ``codesign wifi ...`` to ``app``."""
     wifi = typer.Typer(
@@ -190,4 +258,5 @@ def register(app: typer.Typer) -> None:
     wifi.command("phy-table")(cli_errors(phy_table_command))
     wifi.command("trace")(cli_errors(trace_command))
     wifi.command("capacity")(cli_errors(capacity_command))
+    wifi.command("crosscheck")(cli_errors(crosscheck_command))
     app.add_typer(wifi, name="wifi")

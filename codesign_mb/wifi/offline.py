@@ -113,8 +113,8 @@ class _LpAssembly:
         mac, phy = cfg.mac, cfg.phy
         self.trace = trace
         self.p = cfg.traffic.processing_ticks(mac.tick_us)
-        self.n_ul = mac.ul_data_symbols(1, 0, phy.symbol_us, phy.bandwidth_mhz)
-        self.n_ul_dl = mac.ul_data_symbols(1, 1, phy.symbol_us, phy.bandwidth_mhz)
+        self.n_ul = mac.max_ul_data_symbols(phy, with_dl=False)
+        self.n_ul_dl = mac.max_ul_data_symbols(phy, with_dl=True)
         self.n_dl = mac.dl_data_symbols
         self.full = float(phy.plan.full_band_data_subcarriers)
         self.rows: list[NDArray[np.int64]] = []
@@ -379,7 +379,7 @@ def airtime_prices(trace: Trace) -> AirtimePrices:
     cfg = trace.config
     mac, phy = cfg.mac, cfg.phy
     p = cfg.traffic.processing_ticks(mac.tick_us)
-    n_ul = mac.ul_data_symbols(1, 0, phy.symbol_us, phy.bandwidth_mhz)
+    n_ul = mac.max_ul_data_symbols(phy, with_dl=False)
     full = float(phy.plan.full_band_data_subcarriers)
     ul_price = ticks["ul_price"].to_numpy()
     work, bill = [], []
