@@ -194,7 +194,7 @@ def crosscheck_command(
     ] = "staggered,synchronised",
     schedulers: Annotated[
         str, typer.Option("--schedulers", help="Our allocators, comma separated.")
-    ] = "greedy",
+    ] = "greedy,convex",
     ns3: Annotated[
         str, typer.Option("--ns3", help="ns-3 access schemes: su, ofdma (comma separated) or none.")
     ] = "su,ofdma",
@@ -206,6 +206,12 @@ def crosscheck_command(
     ] = 8,
     out: Annotated[
         Path | None, typer.Option("--out", help="Also write the table and assumptions (JSON).")
+    ] = None,
+    ns3_from: Annotated[
+        Path | None,
+        typer.Option(
+            "--ns3-from", help="Reuse the ns-3 results of an earlier --out file (same grid)."
+        ),
     ] = None,
     as_json: JsonOption = False,
 ) -> None:
@@ -234,7 +240,8 @@ def crosscheck_command(
         max_stations=max_stations,
         periods=periods,
     )
-    rows = crosscheck(cfg, progress=None if as_json else note)
+    known = json.loads(ns3_from.read_text())["rows"] if ns3_from is not None else None
+    rows = crosscheck(cfg, progress=None if as_json else note, ns3_known=known)
     table = [{k: v for k, v in r.items() if not k.endswith("_fractions")} for r in rows]
     report = {"rows": rows, "assumptions": assumptions(cfg), "tolerance": cfg.tolerance}
     if out is not None:

@@ -298,28 +298,48 @@ class ChannelEngine:
                         q.remove(f)
                         self._finish(f, "late", k)
         busy = beacon + self._poll(k, ul_bpss)
-        n_dl = 0
         dl_ready = [i for i, q in enumerate(self.dl_q) if any(f.dl_ready_tick <= k for f in q)]
         if dl_ready:
-            n_sym, ack_sym = self._dl_symbols(dl_ready, dl_bpss)
-            e_dl = dl_bpss * n_sym
-            demand = self._demand(self.dl_q, False, k, e_dl)
-            if demand is not None:
-                layout = self.dl_allocator.allocate(demand)
-                self._record(k, "dl", layout)
-                n_dl = int(np.count_nonzero(layout >= 0))
-                if n_dl:
-                    self._serve(self.dl_q, False, k, layout, e_dl)
-                    data_us = n_sym * self.symbol_us
-                    self.stats.dl_ru_us += np.where(
-                        layout >= 0, self._sd[layout] / self._full_sd * data_us, 0.0
-                    )
-                    busy += mac.dl_exchange_us(n_dl, n_sym, ack_sym, self.config.phy)
+            busy += self._downlink(k, dl_ready, dl_bpss)
         busy += self._uplink(k, ul_bpss, busy - beacon)
         if busy > beacon:
             busy += mac.channel_access_us
         self.busy_us += busy
         self.tick = k + 1
+
+    def _downlink(self, k: int, ready: list[int], dl_bpss: NDArray) -> float:
+        """One DL MU PPDU with every ready state frame the layout fits, in full: airtime in us.
+
+        The allocator lays out RUs for a PPDU sized as if the ready stations shared the band
+        equally, every frame due now (an MPDU is not split over PPDUs); the PPDU then lasts as
+        long as its longest A-MPDU on its RU needs (at most ``dl_data_symbols``).
+        """
+        mac = self.config.mac
+        n_sym, _ = self._dl_symbols(ready, dl_bpss, self._equal_ru_sd(len(ready)))
+        demand = self._demand(self.dl_q, False, k, dl_bpss * n_sym)
+        if demand is None:
+            return 0.0
+        demand = TickDemand(
+            demand.backlog_bits,
+            demand.head_bits,
+            np.ones_like(demand.slack_ticks),
+            demand.bits_per_subcarrier,
+            demand.weights,
+        )
+        layout = self.dl_allocator.allocate(demand)
+        self._record(k, "dl", layout)
+        users = np.flatnonzero(layout >= 0).tolist()
+        if not users:
+            return 0.0
+        sd = int(min(self._sd[layout[i]] for i in users))
+        n_sym, ack_sym = self._dl_symbols(users, dl_bpss, sd, self._sd[layout])
+        e_dl = dl_bpss * n_sym
+        self._serve(self.dl_q, False, k, layout, e_dl)
+        data_us = n_sym * self.symbol_us
+        self.stats.dl_ru_us += np.where(
+            layout >= 0, self._sd[layout] / self._full_sd * data_us, 0.0
+        )
+        return mac.dl_exchange_us(len(users), n_sym, ack_sym, self.config.phy)
 
     def _uplink(self, k: int, ul_bpss: NDArray, busy_us: float) -> float:
         """The trigger-based UL exchange of tick ``k`` after ``busy_us`` of other exchanges."""
@@ -381,15 +401,23 @@ class ChannelEngine:
         tones = max(t for t in plan.sizes if plan.count(t) >= min(n_users, self._max_users))
         return plan.of_size(tones)[0].data_subcarriers
 
-    def _dl_symbols(self, users: list[int], dl_bpss: NDArray) -> tuple[int, int]:
-        """Data symbols of the DL MU PPDU (its longest A-MPDU on equal RUs) and of the acks."""
+    def _dl_symbols(
+        self, users: list[int], dl_bpss: NDArray, sd: int, sd_of: NDArray | None = None
+    ) -> tuple[int, int]:
+        """Data symbols of a DL MU PPDU (its longest A-MPDU) and of the block-ack TB PPDU.
+
+        Each user's A-MPDU is on ``sd_of[user]`` data subcarriers (default ``sd`` each); the
+        acks come back on RUs of ``sd`` subcarriers.
+        """
         mac = self.config.mac
-        sd = self._equal_ru_sd(len(users))
+        need = 1
+        for i in users:
+            nbytes = math.ceil(sum(f.dl_left for f in self.dl_q[i]) / 8)
+            sub = sd if sd_of is None else int(sd_of[i])
+            need = max(need, mac.data_symbols(nbytes, sub, float(dl_bpss[i])))
         b = float(np.min(dl_bpss[users]))
-        need = max(math.ceil(sum(f.dl_left for f in self.dl_q[i]) / 8) for i in users)
-        n_sym = min(mac.dl_data_symbols, mac.data_symbols(need, sd, b))
         ack = mac.data_symbols(mac.block_ack_bytes + mac.delimiter_bytes, sd, b)
-        return max(n_sym, 1), ack
+        return min(mac.dl_data_symbols, need), ack
 
     def _ul_symbols(self, n_users: int, busy_us: float) -> int:
         """``MacTiming.ul_data_symbols``, cached by user count and busy time."""
