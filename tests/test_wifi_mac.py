@@ -138,3 +138,33 @@ def test_ns3_delivered_fraction_falls_with_load():
     assert heavy.delivered_fraction < 0.95
     # a frame's latency is at least its airtime: 13,500 B at MCS 3 on 40 MHz (~ 2 ms)
     assert np.nanmin(light.latency_ms) > 8 * 13_500 / 103.2e3
+
+
+def test_crosscheck_cli_ours_only(runner):
+    import json
+
+    from codesign_mb.cli import app
+
+    args = ["wifi", "crosscheck", "--mcs", "3", "--captures", "staggered", "--ns3", "none"]
+    args += ["--periods", "2", "--max-stations", "20", "--json"]
+    result = runner.invoke(app, args)
+    assert result.exit_code == 0, result.output
+    row = json.loads(result.stdout)["rows"][0]
+    assert row["ours_best"] == max(row["ours_greedy"], row["ours_convex"])
+    fractions = row["ours_greedy_fractions"]
+    assert fractions[str(row["ours_greedy"])] >= 0.95
+    if str(row["ours_greedy"] + 1) in fractions:
+        assert fractions[str(row["ours_greedy"] + 1)] < 0.95
+
+
+def test_phy_table_uplink_gi(runner):
+    import json
+
+    from codesign_mb.cli import app
+
+    result = runner.invoke(app, ["wifi", "phy-table", "--ul-gi", "3.2", "--json"])
+    assert result.exit_code == 0, result.output
+    row = next(r for r in json.loads(result.stdout) if (r["ru_tones"], r["mcs"]) == (484, 11))
+    assert row["ul_rate_mbps"] == pytest.approx(468 * 10 * 5 / 6 / 16.0, abs=1e-3)
+    bad = runner.invoke(app, ["wifi", "phy-table", "--ul-gi", "0.8"])
+    assert bad.exit_code == 2 and "ul_guard_interval_us" in bad.output

@@ -54,14 +54,24 @@ def phy_table_command(
     bandwidth: Annotated[
         int, typer.Option("--bandwidth", "-b", help="Channel width in MHz: 20, 40 or 80.")
     ] = 40,
-    gi: Annotated[float, typer.Option("--gi", help="Guard interval in us: 0.8, 1.6 or 3.2.")] = 0.8,
+    gi: Annotated[
+        float, typer.Option("--gi", help="Downlink (HE MU) guard interval in us: 0.8, 1.6 or 3.2.")
+    ] = 0.8,
+    ul_gi: Annotated[
+        float, typer.Option("--ul-gi", help="Uplink (HE TB) guard interval in us: 1.6 or 3.2.")
+    ] = 1.6,
     streams: Annotated[int, typer.Option("--streams", help="Spatial streams: 1 or 2.")] = 1,
     as_json: JsonOption = False,
 ) -> None:
-    """802.11ax data rate (Mb/s) of every RU size and MCS 0-11 of the channel."""
+    """802.11ax data rate (Mb/s) of every RU size and MCS 0-11, at the DL and the UL GI."""
     from codesign_mb.wifi.phy import PhyConfig
 
-    phy = PhyConfig(bandwidth_mhz=bandwidth, guard_interval_us=gi, spatial_streams=streams)
+    phy = PhyConfig(
+        bandwidth_mhz=bandwidth,
+        guard_interval_us=gi,
+        ul_guard_interval_us=ul_gi,
+        spatial_streams=streams,
+    )
     emit(phy.rate_table(), as_json=as_json, title=f"802.11ax rates, {bandwidth} MHz, Mb/s")
 
 
@@ -241,12 +251,17 @@ def crosscheck_command(
         periods=periods,
     )
     known = json.loads(ns3_from.read_text())["rows"] if ns3_from is not None else None
-    rows = crosscheck(cfg, progress=None if as_json else note, ns3_known=known)
+
+    def save(rows: list[dict[str, Any]]) -> None:
+        if out is not None:
+            report = {"rows": rows, "assumptions": assumptions(cfg), "tolerance": cfg.tolerance}
+            with atomic_write(out, "w") as fh:
+                json.dump(report, fh, indent=1)
+
+    rows = crosscheck(cfg, progress=None if as_json else note, ns3_known=known, on_row=save)
     table = [{k: v for k, v in r.items() if not k.endswith("_fractions")} for r in rows]
     report = {"rows": rows, "assumptions": assumptions(cfg), "tolerance": cfg.tolerance}
     if out is not None:
-        with atomic_write(out, "w") as fh:
-            json.dump(report, fh, indent=1)
         note(f"wrote {out}")
     if as_json:
         emit(report, as_json=True)

@@ -13,6 +13,7 @@ traffic as a :class:`~codesign_mb.wifi.sim.Trace` under an allocator. ns-3:
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from typing import Any
@@ -153,12 +154,13 @@ def capacity(
     target: float = CROSSCHECK_TARGET,
     *,
     guess: int | None = None,
+    step: float = 2.0,
 ) -> tuple[int, dict[int, float]]:
     """Largest ``N`` in ``[0, max_stations]`` with ``fraction(N) >= target``.
 
     Assumes the fraction falls with ``N`` (more stations share the channel): brackets the
-    capacity from ``guess`` (doubling up or halving down), then bisects. Returns the capacity
-    and every fraction evaluated.
+    capacity from ``guess`` (multiplying or dividing by ``step``), then bisects. Returns the
+    capacity and every fraction evaluated.
     """
     seen: dict[int, float] = {}
 
@@ -173,7 +175,7 @@ def capacity(
         if ok(probe):
             lo = probe
             while lo < max_stations:
-                probe = min(max_stations, 2 * lo)
+                probe = min(max_stations, max(lo + 1, math.ceil(step * lo)))
                 if not ok(probe):
                     hi = probe
                     break
@@ -181,7 +183,7 @@ def capacity(
         else:
             hi = probe
             while hi > 1:
-                probe = hi // 2
+                probe = min(hi - 1, math.floor(hi / step))
                 if ok(probe):
                     lo = probe
                     break
@@ -207,13 +209,20 @@ def _ours_fraction(
 
 
 def _ns3_fraction(
-    cfg: CrosscheckConfig, mcs: int, capture: str, access: str, known: dict[int, float]
+    cfg: CrosscheckConfig,
+    mcs: int,
+    capture: str,
+    access: str,
+    known: dict[int, float],
+    progress: Callable[[str], None] | None = None,
 ) -> Callable[[int], float]:
     from codesign_mb.wifi.ns3_driver import Ns3Scenario, run_ns3
 
     def fraction(n: int) -> float:
         if n in known:
             return known[n]
+        if progress is not None:
+            progress(f"  ns-3 {access}, MCS {mcs}, {capture}, {n} stations ...")
         scenario = Ns3Scenario(
             n_stations=n,
             mcs=mcs,
@@ -235,11 +244,13 @@ def crosscheck(
     *,
     progress: Callable[[str], None] | None = None,
     ns3_known: list[dict[str, Any]] | None = None,
+    on_row: Callable[[list[dict[str, Any]]], None] | None = None,
 ) -> list[dict[str, Any]]:
     """One row per (MCS, capture): our capacity and ns-3's, per scheme, and the relative gap.
 
     ``ns3_known``: rows of an earlier cross-check (same ns-3 settings) whose ns-3 delivered
-    fractions are reused instead of simulated again.
+    fractions are reused instead of simulated again; ``on_row`` gets the rows so far after
+    each (to save partial results).
     """
     rows: list[dict[str, Any]] = []
     earlier = {(r["mcs"], r["capture"]): r for r in ns3_known or []}
@@ -260,8 +271,8 @@ def crosscheck(
                     progress(f"ns-3 {access}, MCS {mcs}, {capture}")
                 old = earlier.get((mcs, capture), {}).get(f"ns3_{access}_fractions", {})
                 known = {int(n): float(v) for n, v in old.items()}
-                fraction = _ns3_fraction(cfg, mcs, capture, access, known)
-                cap, seen = capacity(fraction, cfg.max_stations, guess=guess)
+                fraction = _ns3_fraction(cfg, mcs, capture, access, known, progress)
+                cap, seen = capacity(fraction, cfg.max_stations, guess=guess, step=1.25)
                 row[f"ns3_{access}"] = cap
                 row[f"ns3_{access}_fractions"] = {
                     str(k): round(v, 4) for k, v in sorted(seen.items())
@@ -272,6 +283,8 @@ def crosscheck(
             row["gap"] = round((ours - best) / best, 4) if best else None
             row["within_tolerance"] = best > 0 and abs(ours - best) <= cfg.tolerance * best
             rows.append(row)
+            if on_row is not None:
+                on_row(rows)
     return rows
 
 
