@@ -215,12 +215,19 @@ def crosscheck_command(
         int, typer.Option("--periods", help="40 ms periods counted per run (after 2 warm-up).")
     ] = 8,
     out: Annotated[
-        Path | None, typer.Option("--out", help="Also write the table and assumptions (JSON).")
+        Path | None,
+        typer.Option(
+            "--out",
+            help="Also write the table and assumptions (JSON), after every cell. \\[default: none]",
+            show_default=False,
+        ),
     ] = None,
     ns3_from: Annotated[
         Path | None,
         typer.Option(
-            "--ns3-from", help="Reuse the ns-3 results of an earlier --out file (same grid)."
+            "--ns3-from",
+            help="Reuse the ns-3 results of an earlier --out file (same grid). \\[default: none]",
+            show_default=False,
         ),
     ] = None,
     as_json: JsonOption = False,
@@ -228,7 +235,7 @@ def crosscheck_command(
     """Capacity (robots with >= 95 % of frames in 40 ms) of our cell model and of ns-3's.
 
     Same traffic both sides: N stations, 13,500 B up and 32 B down per 40 ms, one fixed MCS,
-    no channel errors. ns-3 (optional dependency: pip install 'codesign-mb[ns3]') runs its
+    no channel errors. ns-3 (optional dependency: pip install 'codesign-mb\\[ns3]') runs its
     802.11ax model single-user (EDCA) and with its round-robin OFDMA scheduler.
     """
     import json
