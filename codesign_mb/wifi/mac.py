@@ -67,10 +67,10 @@ class MacTiming:
         a basic Trigger (9.3.1.22.2); a BSRP Trigger has none.
     mba_base_bytes, mba_user_bytes:
         Multi-STA BlockAck: FC 2 + Duration 2 + RA 6 + TA 6 + BA Control 2 + FCS 4; per
-        station AID TID Info 2 + Starting Sequence Control 2 + 64-bit bitmap 8 (9.3.1.8.7).
+        station AID TID Info 2 + Starting Sequence Control 2 + 64-bit bitmap 8 (9.3.1.9.7).
     block_ack_bytes:
         Compressed BlockAck a station returns for its DL A-MPDU: 16 + 2 + 2 + 8 + FCS 4
-        (9.3.1.8.2).
+        (9.3.1.9.3).
     qos_null_bytes:
         QoS Null frame with HT Control (carrying the BSR): MAC header 26 + 4 + FCS 4.
     he_legacy_preamble_us:
