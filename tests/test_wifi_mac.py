@@ -39,20 +39,24 @@ def test_ap_sees_a_camera_frame_only_after_a_bsr():
     (tick, direction, layout) = engine.layouts[-1]
     assert (tick, direction) == (5, "ul")
     sd = engine.plan.units[int(layout[0])].data_subcarriers
-    assert frame.ul_bits - frame.ul_left == pytest.approx(sd * n_sym - 22)
+    # SERVICE + tail bits, and a dynamic fragment: one more MAC header, FCS and delimiter
+    assert frame.ul_bits - frame.ul_left == pytest.approx(sd * n_sym - 22 - 8 * 38)
 
 
 def test_a_station_with_data_reports_new_frames_without_a_poll():
     engine = _engine(1)
-    first = Frame(0, 0, 0, 40, 200_000, 848)  # longer than one tick
+    first = Frame(0, 0, 0, 40, 60_000, 848)  # longer than one tick
     engine.add(first)
     engine.run_tick(np.ones(1), np.ones(1))  # polled at tick 0, served, BSR with its data
     second = Frame(0, 1, 1, 41, 1_000, 848)
     engine.add(second)
     engine.run_tick(np.ones(1), np.ones(1))  # tick 1 (no poll): its BSR of tick 0 is old
     before = second.ul_left
-    while first.ul_left > 0:
+    for _ in range(38):
+        if first.ul_left <= 0 or first.fate != "queued":
+            break
         engine.run_tick(np.ones(1), np.ones(1))
+    assert first.ul_left <= 0
     # the BSR sent with tick-1 data reported the second frame: it is served without a poll
     engine.run_tick(np.ones(1), np.ones(1))
     assert before == second.ul_bits and second.ul_left < second.ul_bits

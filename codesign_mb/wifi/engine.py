@@ -248,10 +248,17 @@ class ChannelEngine:
     def _serve(
         self, queues: list[deque[Frame]], ul: bool, k: int, layout: NDArray, e_sc: NDArray
     ) -> None:
+        mac = self.config.mac
         bits = self._sd[layout] * e_sc
+        # An A-MPDU that ends inside an MPDU carries it as a dynamic fragment (26.3): one more
+        # MAC header, FCS and delimiter.
+        fragment_bits = 8 * (mac.mac_header_bytes + mac.fcs_bytes + mac.delimiter_bytes)
         for i in np.flatnonzero(layout >= 0).tolist():
-            budget = bits[i] - self.config.mac.service_tail_bits  # per PSDU (27.3.12)
+            budget = bits[i] - mac.service_tail_bits  # per PSDU (27.3.12)
             q = queues[i]
+            queued = sum(f.ul_left if ul else f.dl_left for f in q)
+            if budget < queued:
+                budget -= fragment_bits
             done: list[Frame] = []
             for f in q:
                 if budget <= 0:

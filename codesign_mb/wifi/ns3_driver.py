@@ -12,6 +12,8 @@ station within the period (``eq_deadline`` with ``tau = 1``).
 ``access="ofdma"``: the AP runs ns-3's ``RrMultiUserScheduler`` (DL OFDMA, UL OFDMA solicited by
 basic Trigger frames after BSRP Trigger frames, channel access requested every
 ``access_req_interval_us``); stations keep contending by EDCA as ns-3 lets them.
+``access="ofdma-muedca"``: the same, and the AP's MU EDCA Parameter Set (AIFSN 0, the longest
+timer) stops a station contending once it has been triggered, as our cell model assumes.
 
 The scenario runs in C++ (compiled once per process by cppyy): ns-3's Python bindings are
 the optional dependency ``ns3`` (``pip install codesign-mb[ns3]``), imported on first use.
@@ -29,7 +31,7 @@ from numpy.typing import NDArray
 
 __all__ = ["NS3_ACCESS", "Ns3Result", "Ns3Scenario", "ns3_available", "run_ns3"]
 
-NS3_ACCESS = ("su", "ofdma")
+NS3_ACCESS = ("su", "ofdma", "ofdma-muedca")
 
 UDP_PAYLOAD_MAX_BYTES = 1472
 """UDP payload of a 1500-byte IP MTU: 1500 - IP 20 - UDP 8."""
@@ -95,7 +97,8 @@ public:
 
 // Returns, per station and frame, capture time, UL completion and DL arrival (ns, -1: never).
 std::vector<int64_t> RunScenario(uint32_t nSta, uint32_t mcs, uint32_t widthMhz, uint32_t giNs,
-                                 bool ofdma, uint32_t muStations, double accessReqUs,
+                                 bool ofdma, bool muEdca, uint32_t muStations,
+                                 double accessReqUs,
                                  std::vector<int64_t> offsetsNs, double periodMs,
                                  uint32_t nFrames, double warmupS, std::vector<uint32_t> sizes,
                                  uint32_t dlBytes, uint32_t run) {
@@ -130,6 +133,15 @@ std::vector<int64_t> RunScenario(uint32_t nSta, uint32_t mcs, uint32_t widthMhz,
                               "EnableBsrp", BooleanValue(true), "NStations",
                               UintegerValue(muStations), "AccessReqInterval",
                               TimeValue(MicroSeconds(accessReqUs)));
+  }
+  if (ofdma && muEdca) {
+    // MU EDCA Parameter Set: AIFSN 0 (EDCA disabled) for the longest MU EDCA timer
+    // (255 x 8.192 ms) after every Trigger frame: triggered stations stop contending.
+    TimeValue timer(MicroSeconds(2088960));
+    wifi.ConfigHeOptions("MuBeAifsn", UintegerValue(0), "MuBkAifsn", UintegerValue(0),
+                         "MuViAifsn", UintegerValue(0), "MuVoAifsn", UintegerValue(0),
+                         "BeMuEdcaTimer", timer, "BkMuEdcaTimer", timer,
+                         "ViMuEdcaTimer", timer, "VoMuEdcaTimer", timer);
   }
   mac.SetType("ns3::ApWifiMac", "Ssid", SsidValue(ssid), "EnableBeaconJitter",
               BooleanValue(false));
@@ -236,7 +248,8 @@ class Ns3Scenario:
     mcs:
         HE-MCS of every data frame, both ways.
     access:
-        ``"su"`` (EDCA, single-user PPDUs) or ``"ofdma"`` (``RrMultiUserScheduler``).
+        ``"su"`` (EDCA, single-user PPDUs), ``"ofdma"`` (``RrMultiUserScheduler``) or
+        ``"ofdma-muedca"`` (the same, triggered stations kept off EDCA by MU EDCA).
     bandwidth_mhz, guard_interval_us:
         Channel width and the HE guard interval of every PPDU (ns-3 has one setting; UL
         OFDMA needs 1.6 or 3.2 us).
@@ -275,7 +288,7 @@ class Ns3Scenario:
             raise ValueError(f"n_stations must be in [1, 200], got {self.n_stations!r}")
         if not 0 <= self.mcs <= 11:
             raise ValueError(f"mcs must be in [0, 11], got {self.mcs!r}")
-        if self.access == "ofdma" and self.guard_interval_us < 1.6:
+        if self.access != "su" and self.guard_interval_us < 1.6:
             raise ValueError("guard_interval_us must be 1.6 or 3.2 with UL OFDMA (HE TB PPDU)")
         if self.frames < 1 or self.skip_frames < 0:
             raise ValueError("frames must be >= 1 and skip_frames >= 0")
@@ -329,7 +342,8 @@ def run_ns3(scenario: Ns3Scenario) -> Ns3Result:
         s.mcs,
         s.bandwidth_mhz,
         round(s.guard_interval_us * 1000),
-        s.access == "ofdma",
+        s.access != "su",
+        s.access == "ofdma-muedca",
         s.mu_stations,
         float(s.access_req_interval_us),
         offsets,
