@@ -21,8 +21,8 @@ A beacon (non-HT, basic rate, after its own channel access) takes its airtime ou
 it falls in. Frame sizes count every header: per MSDU LLC/SNAP, IP and UDP; per MPDU the QoS
 Data MAC header with HT Control and FCS; per A-MPDU subframe a delimiter and padding; per PPDU
 and user the SERVICE field and tail bits; an A-MPDU that ends inside an MPDU sends it as a
-dynamic fragment (26.3), one more MAC header, FCS and delimiter. Not modelled: retransmissions (a frame the channel
-loses is lost, ``eq_per``), other BSSs, RTS/CTS.
+dynamic fragment (26.3), one more MAC header, FCS and delimiter. Not modelled:
+retransmissions (a frame the channel loses is lost, ``eq_per``), other BSSs, RTS/CTS.
 """
 
 from __future__ import annotations
