@@ -19,10 +19,10 @@ deadline)`` (``eq_deadline``), ``b_ik`` the bits per subcarrier-symbol of statio
 ``N_UL'`` the most when the tick also holds a DL exchange (its shortest: one user, one data
 and one ack symbol), ``N_DL`` the most DL data symbols of a DL MU PPDU
 (``MacTiming.dl_data_symbols``), and ``S`` the data subcarriers of the full-band RU, which no
-valid layout exceeds. Every simulated schedule is feasible for this LP (with ``y_k = 1`` in the ticks that carry a DL PPDU: its layouts use at
-most ``S`` subcarriers, its PPDUs at most ``N_UL``, or ``N_UL'`` next to a DL exchange, and
-at most ``N_DL`` symbols, and a state frame is queued only after its camera frame), so the optimum
-bounds the delivered count of any online allocator. Frames the channel will lose are left
+valid layout exceeds. Every simulated schedule is feasible for this LP (with ``y_k = 1`` in
+the ticks that carry a DL PPDU: its layouts use at most ``S`` subcarriers, its PPDUs at most
+``N_UL``, or ``N_UL'`` next to a DL exchange, and at most ``N_DL`` symbols, and a state frame
+is queued only after its camera frame), so the optimum bounds the delivered count of any online allocator. Frames the channel will lose are left
 out: no schedule can deliver them.
 
 Solvers: HiGHS (``scipy.optimize.linprog``), Clarabel and OSQP, each called on the same
