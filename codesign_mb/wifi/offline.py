@@ -22,8 +22,8 @@ and one ack symbol), ``N_DL`` the most DL data symbols of a DL MU PPDU
 valid layout exceeds. Every simulated schedule is feasible for this LP (with ``y_k = 1`` in
 the ticks that carry a DL PPDU: its layouts use at most ``S`` subcarriers, its PPDUs at most
 ``N_UL``, or ``N_UL'`` next to a DL exchange, and at most ``N_DL`` symbols, and a state frame
-is queued only after its camera frame), so the optimum bounds the delivered count of any online allocator. Frames the channel will lose are left
-out: no schedule can deliver them.
+is queued only after its camera frame), so the optimum bounds the delivered count of any
+online allocator. Frames the channel will lose are left out: no schedule can deliver them.
 
 Solvers: HiGHS (``scipy.optimize.linprog``), Clarabel and OSQP, each called on the same
 matrices.
