@@ -74,8 +74,8 @@ for name in CHANNEL_PRESETS:
 def frame_ticks(config, mcs):
     """Whole-band UL ticks of one camera frame at ``mcs``, and the UL share a DL exchange costs."""
     mac, phy = config.mac, config.phy
-    n_ul = mac.ul_data_symbols(1, 0, phy.symbol_us, phy.bandwidth_mhz)
-    n_ul_dl = mac.ul_data_symbols(1, 1, phy.symbol_us, phy.bandwidth_mhz)
+    n_ul = mac.max_ul_data_symbols(phy, with_dl=False)
+    n_ul_dl = mac.max_ul_data_symbols(phy, with_dl=True)
     bits = mac.psdu_bits(config.traffic.ul_frame_bytes)
     per_tick = phy.plan.full_band_data_subcarriers * phy.bits_per_subcarrier_symbol(mcs) * n_ul
     return float(bits / per_tick), (n_ul - n_ul_dl) / n_ul

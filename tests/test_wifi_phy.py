@@ -15,7 +15,7 @@ from codesign_mb.wifi.channel import (
     packet_error_rate,
 )
 from codesign_mb.wifi.mac import MacTiming, legacy_ppdu_us
-from codesign_mb.wifi.phy import PhyConfig, data_rate_mbps, ru_plan
+from codesign_mb.wifi.phy import PhyConfig, data_rate_mbps, he_ltf_symbol_us, ru_plan
 from codesign_mb.wifi.traffic import TrafficConfig, drop_probability
 
 
@@ -76,17 +76,66 @@ def test_phy_table_rows():
 
 
 def test_airtime_parts():
-    mac = MacTiming()
+    mac, phy = MacTiming(), PhyConfig()
     # non-HT PPDU: 20 us preamble + 4 us symbols; 14-byte ACK at 24 Mb/s = 20 + 4*2 = 28 us
     assert legacy_ppdu_us(14, 24.0) == 28.0
-    assert mac.he_tb_ppdu_us(10, 13.6) == pytest.approx(32 + 8 + 8 + 136 + 4)
-    # more users: longer trigger and multi-STA BA, fewer UL data symbols
-    assert mac.ul_data_symbols(18, 0, 13.6, 40) < mac.ul_data_symbols(1, 0, 13.6, 40)
-    assert mac.ul_data_symbols(4, 4, 13.6, 40) < mac.ul_data_symbols(4, 0, 13.6, 40)
-    parts = mac.breakdown(6, 6, 13.6, 40)
+    # AC_VI: SIFS 16 + AIFSN 2 x 9 + CWmin 7 / 2 x 9 (Table 9-155, 10.23.2)
+    assert mac.channel_access_us == pytest.approx(65.5)
+    # HE TB PPDU, default UL GI 1.6 us: 32 + HE-STF 8 + 2x HE-LTF (6.4 + 1.6) + 14.4 n + PE 4
+    assert mac.he_tb_ppdu_us(10, phy) == pytest.approx(32 + 8 + 8 + 144 + 4)
+    # ... and at 3.2 us with the 4x HE-LTF (12.8 + 3.2)
+    gi32 = PhyConfig(ul_guard_interval_us=3.2)
+    assert mac.he_tb_ppdu_us(10, gi32) == pytest.approx(32 + 8 + 16 + 160 + 4)
+    # basic Trigger, 1 user: 28 + 6 bytes -> ceil((16 + 272 + 6) / 96) = 4 symbols -> 36 us
+    assert mac.trigger_us(1) == 36.0
+    assert mac.trigger_us(9) == 20 + 4 * math.ceil((16 + 8 * 82 + 6) / 96)
+    assert mac.trigger_us(9, bsrp=True) == 20 + 4 * math.ceil((16 + 8 * 73 + 6) / 96)
+    assert mac.multi_sta_ba_us(1) == 36.0
+    # DL MU exchange, 1 user, 1 data and 1 ack symbol, 40 MHz, DL GI 0.8 us:
+    # MU PPDU 32 + SIG-B ceil(39 / 26) x 4 + STF 4 + 2x LTF 7.2 + 13.6 + PE 4 = 68.8 us,
+    # TB ack 32 + 8 + 8 + 14.4 + 4 = 66.4 us, two SIFS
+    assert mac.dl_exchange_us(1, 1, 1, phy) == pytest.approx(68.8 + 16 + 66.4 + 16)
+    # UL: 1000 - 65.5 - (trigger 36 + 16 + TB preamble 52 + 16 + M-BA 36) = 778.5 us of data
+    assert mac.ul_data_symbols(1, 0.0, phy) == math.floor(778.5 / 14.4)
+    assert mac.max_ul_data_symbols(phy, with_dl=False) == 54
+    assert mac.ul_data_symbols(18, 0.0, phy) < mac.ul_data_symbols(1, 0.0, phy)
+    parts = mac.breakdown(6, 6, phy)
     total = parts["channel_access_us"] + parts["dl_exchange_us"] + parts["ul_overhead_us"]
     assert total + parts["ul_data_us"] <= mac.tick_us
-    assert mac.psdu_bits(13_500) == 8 * (13_500 + 9 * 34)
+
+
+def test_frame_bytes_count_every_header():
+    mac = MacTiming()
+    # 13,500 B -> 9 UDP datagrams of 1472 B + one of 252 B; per MPDU LLC/SNAP 8 + IP/UDP 28
+    # + MAC header 30 + FCS 4, per subframe a 4-byte delimiter, padded to 4 bytes but the last
+    assert mac.msdu_count(13_500) == 10
+    assert mac.ampdu_bytes(13_500) == 9 * 1548 + (4 + 252 + 70)
+    assert mac.ampdu_bytes(32) == 4 + 32 + 70
+    assert mac.psdu_bits(32) == 8 * 106
+    # data symbols: SERVICE 16 + tail 6 bits on top; 106 B on a 26-tone RU (24 SD) at MCS 0
+    assert mac.data_symbols(106, 24, 0.5) == math.ceil((22 + 848) / 12)
+
+
+def test_beacons_every_100_tu():
+    mac = MacTiming()
+    due = [k for k in range(400) if mac.beacon_due(k)]
+    assert due == [0, 102, 204, 307]  # 0, 102.4, 204.8, 307.2 ms
+    assert mac.beacon_us == pytest.approx(65.5 + 20 + 4 * math.ceil((22 + 2400) / 24))
+
+
+def test_uplink_guard_interval_follows_the_standard():
+    # HE TB PPDUs allow 1.6 us (1x/2x HE-LTF) and 3.2 us (4x), never 0.8 us (9.3.1.22)
+    with pytest.raises(ValueError, match="ul_guard_interval_us"):
+        PhyConfig(ul_guard_interval_us=0.8)
+    with pytest.raises(ValueError, match="HE TB"):
+        he_ltf_symbol_us(0.8, trigger_based=True)
+    assert he_ltf_symbol_us(0.8, trigger_based=False) == pytest.approx(7.2)
+    phy = PhyConfig()
+    assert (phy.symbol_us, phy.ul_symbol_us) == (pytest.approx(13.6), pytest.approx(14.4))
+    # the uplink rate at 1.6 us is 13.6 / 14.4 of the 0.8 us one: the "6 % too high"
+    row = next(r for r in phy.rate_table() if (r["ru_tones"], r["mcs"]) == (484, 7))
+    assert row["ul_rate_mbps"] == pytest.approx(468 * 5 / 14.4, abs=1e-3)
+    assert row["ul_rate_mbps"] / row["rate_mbps"] == pytest.approx(13.6 / 14.4, abs=1e-4)
 
 
 def test_per_model_and_link_adaptation():

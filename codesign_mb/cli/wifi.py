@@ -22,7 +22,13 @@ from codesign_mb.cli.common import (
     track,
 )
 
-__all__ = ["capacity_command", "phy_table_command", "register", "trace_command"]
+__all__ = [
+    "capacity_command",
+    "crosscheck_command",
+    "phy_table_command",
+    "register",
+    "trace_command",
+]
 
 
 def _parse_robots(text: str) -> tuple[int, ...]:
@@ -48,14 +54,24 @@ def phy_table_command(
     bandwidth: Annotated[
         int, typer.Option("--bandwidth", "-b", help="Channel width in MHz: 20, 40 or 80.")
     ] = 40,
-    gi: Annotated[float, typer.Option("--gi", help="Guard interval in us: 0.8, 1.6 or 3.2.")] = 0.8,
+    gi: Annotated[
+        float, typer.Option("--gi", help="Downlink (HE MU) guard interval in us: 0.8, 1.6 or 3.2.")
+    ] = 0.8,
+    ul_gi: Annotated[
+        float, typer.Option("--ul-gi", help="Uplink (HE TB) guard interval in us: 1.6 or 3.2.")
+    ] = 1.6,
     streams: Annotated[int, typer.Option("--streams", help="Spatial streams: 1 or 2.")] = 1,
     as_json: JsonOption = False,
 ) -> None:
-    """802.11ax data rate (Mb/s) of every RU size and MCS 0-11 of the channel."""
+    """802.11ax data rate (Mb/s) of every RU size and MCS 0-11, at the DL and the UL GI."""
     from codesign_mb.wifi.phy import PhyConfig
 
-    phy = PhyConfig(bandwidth_mhz=bandwidth, guard_interval_us=gi, spatial_streams=streams)
+    phy = PhyConfig(
+        bandwidth_mhz=bandwidth,
+        guard_interval_us=gi,
+        ul_guard_interval_us=ul_gi,
+        spatial_streams=streams,
+    )
     emit(phy.rate_table(), as_json=as_json, title=f"802.11ax rates, {bandwidth} MHz, Mb/s")
 
 
@@ -181,6 +197,87 @@ def capacity_command(
     emit(curves, as_json=as_json, title="task success vs robots (fig_wifi)")
 
 
+def crosscheck_command(
+    mcs: Annotated[str, typer.Option("--mcs", help="MCS values, comma separated.")] = "0,3,7",
+    captures: Annotated[
+        str, typer.Option("--captures", help="staggered, synchronised or both, comma separated.")
+    ] = "staggered,synchronised",
+    schedulers: Annotated[
+        str, typer.Option("--schedulers", help="Our allocators, comma separated.")
+    ] = "greedy,convex",
+    ns3: Annotated[
+        str, typer.Option("--ns3", help="ns-3 access schemes: su, ofdma (comma separated) or none.")
+    ] = "su,ofdma",
+    max_stations: Annotated[
+        int, typer.Option("--max-stations", help="Upper end of the capacity search.")
+    ] = 64,
+    periods: Annotated[
+        int, typer.Option("--periods", help="40 ms periods counted per run (after 2 warm-up).")
+    ] = 8,
+    out: Annotated[
+        Path | None,
+        typer.Option(
+            "--out",
+            help="Also write the table and assumptions (JSON), after every cell. \\[default: none]",
+            show_default=False,
+        ),
+    ] = None,
+    ns3_from: Annotated[
+        Path | None,
+        typer.Option(
+            "--ns3-from",
+            help="Reuse the ns-3 results of an earlier --out file (same grid). \\[default: none]",
+            show_default=False,
+        ),
+    ] = None,
+    as_json: JsonOption = False,
+) -> None:
+    """Capacity (robots with >= 95 % of frames in 40 ms) of our cell model and of ns-3's.
+
+    Same traffic both sides: N stations, 13,500 B up and 32 B down per 40 ms, one fixed MCS,
+    no channel errors. ns-3 (optional dependency: pip install 'codesign-mb\\[ns3]') runs its
+    802.11ax model single-user (EDCA) and with its round-robin OFDMA scheduler.
+    """
+    import json
+
+    from codesign_mb.core.results import atomic_write
+    from codesign_mb.wifi.crosscheck import CrosscheckConfig, assumptions, crosscheck
+
+    access = () if ns3.strip() in ("", "none") else tuple(a.strip() for a in ns3.split(","))
+    if access:
+        from codesign_mb.wifi.ns3_driver import ns3_available
+
+        if not ns3_available():
+            raise ValueError("ns-3 is not installed: pip install 'codesign-mb[ns3]', or --ns3 none")
+    cfg = CrosscheckConfig(
+        mcs=tuple(int(m) for m in mcs.split(",")),
+        captures=tuple(c.strip() for c in captures.split(",")),
+        schedulers=tuple(s.strip() for s in schedulers.split(",")),
+        ns3_access=access,
+        max_stations=max_stations,
+        periods=periods,
+    )
+    known = json.loads(ns3_from.read_text())["rows"] if ns3_from is not None else None
+
+    def save(rows: list[dict[str, Any]]) -> None:
+        if out is not None:
+            report = {"rows": rows, "assumptions": assumptions(cfg), "tolerance": cfg.tolerance}
+            with atomic_write(out, "w") as fh:
+                json.dump(report, fh, indent=1)
+
+    rows = crosscheck(cfg, progress=None if as_json else note, ns3_known=known, on_row=save)
+    table = [{k: v for k, v in r.items() if not k.endswith("_fractions")} for r in rows]
+    report = {"rows": rows, "assumptions": assumptions(cfg), "tolerance": cfg.tolerance}
+    if out is not None:
+        note(f"wrote {out}")
+    if as_json:
+        emit(report, as_json=True)
+    else:
+        emit(table, as_json=False, title="capacity (robots at 95 % delivered): ours vs ns-3")
+        for name, text in report["assumptions"].items():
+            note(f"{name}: {text}")
+
+
 def register(app: typer.Typer) -> None:
     """Add ``codesign wifi ...`` to ``app``."""
     wifi = typer.Typer(
@@ -190,4 +287,5 @@ def register(app: typer.Typer) -> None:
     wifi.command("phy-table")(cli_errors(phy_table_command))
     wifi.command("trace")(cli_errors(trace_command))
     wifi.command("capacity")(cli_errors(capacity_command))
+    wifi.command("crosscheck")(cli_errors(crosscheck_command))
     app.add_typer(wifi, name="wifi")

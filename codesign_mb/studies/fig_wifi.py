@@ -182,7 +182,7 @@ CHANNEL_PRESETS: dict[str, WifiConfig] = {
     # frame takes ~5.5 ticks of the whole band and its DL exchange ~0.4, so static QoS (q = 1)
     # fills the 40 ms period with about 6 robots, as in the paper.
     "paper": WifiConfig(
-        phy=PhyConfig(guard_interval_us=3.2),
+        phy=PhyConfig(guard_interval_us=3.2, ul_guard_interval_us=3.2),
         channel=ChannelConfig(fixed_mcs=1, q0=0.9, rician_k_db=math.inf),
         mac=MacTiming(legacy_rate_mbps=6.0),
     ),

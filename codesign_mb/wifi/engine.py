@@ -2,13 +2,17 @@
 
 One tick ``k`` (:class:`~codesign_mb.wifi.mac.MacTiming`): expired frames leave the queues
 (``eq_deadline``; a camera frame expires ``1 + processing`` ticks before its deadline, the
-least its state frame needs, and allocators see that earlier deadline for it); if state
-frames are queued, the allocator lays out the DL MU PPDU and each scheduled station is served
-``N_SD(r) * e_dl`` bits (``eq_serve``); then, if camera frames are queued, it lays out the UL
+least its state frame needs, and allocators see that earlier deadline for it); every
+``bsrp_interval_ticks`` the AP polls (BSRP) the stations whose queue it believes empty, and
+it sees a camera frame only once a BSR reported it (a poll, or the BSR a station sends with
+its data); if state frames are ready, the allocator lays out one DL MU PPDU for all of them,
+as long as their longest A-MPDU needs, and each scheduled station is served ``N_SD(r) *
+e_dl`` bits (``eq_serve``); then, if reported camera frames are queued, it lays out the UL
 TB PPDU with every data symbol left in the tick (``eq_air_ul``): the allocator sizes RUs with
-the symbols left if every queued station were triggered, and the PPDU then gets the symbols
+the symbols left if every reported station were triggered, and the PPDU then gets the symbols
 left by the Trigger frame and multi-STA BlockAck of the stations it scheduled (their User Info
-and per-station fields are what grow with the users). A camera frame served in full
+and per-station fields are what grow with the users). Every served PSDU loses its SERVICE
+and tail bits. A camera frame served in full
 at tick ``k`` queues its state frame at tick ``k + 1 + processing``; a state frame served in
 full at tick ``k`` is at the robot at time ``k + 1`` (ticks). A frame whose channel fate (drawn
 from the hop's delivery probability, ``eq_per``) is "lost" is sent but never delivered.
@@ -20,6 +24,7 @@ recorded traces through it and :mod:`codesign_mb.wifi.cell` drives it from robot
 
 from __future__ import annotations
 
+import math
 from collections import deque
 from dataclasses import dataclass, field
 from typing import Any
@@ -171,7 +176,10 @@ class ChannelEngine:
         self.delivered: list[list[Frame]] = [[] for _ in range(n_stations)]
         self.stats = _Stats(n_stations)
         self.busy_us = 0.0
-        self._airtime_cache: dict[tuple[str, int, int], float] = {}
+        self._airtime_cache: dict[tuple[int, float], int] = {}
+        self.ul_symbol_us = config.phy.ul_symbol_us
+        # last tick whose queue each station reported to the AP (BSR); -1: never
+        self._reported = np.full(n_stations, -1, dtype=np.int64)
         self.layouts: list[tuple[int, str, NDArray[np.int64]]] | None = None
         # allocators may be reused across engines: count their fallbacks from here on
         self._fallbacks_before = (_fallbacks_of(ul_allocator)[0], _fallbacks_of(dl_allocator)[0])
@@ -222,6 +230,8 @@ class ChannelEngine:
             for f in q:
                 if not ul and f.dl_ready_tick > k:
                     continue
+                if ul and f.capture_tick > self._reported[i]:
+                    break  # the AP learns of a camera frame from a BSR only
                 if first is None:
                     first = f
                 total += f.ul_left if ul else f.dl_left
@@ -238,10 +248,17 @@ class ChannelEngine:
     def _serve(
         self, queues: list[deque[Frame]], ul: bool, k: int, layout: NDArray, e_sc: NDArray
     ) -> None:
+        mac = self.config.mac
         bits = self._sd[layout] * e_sc
+        # An A-MPDU that ends inside an MPDU carries it as a dynamic fragment (26.3): one more
+        # MAC header, FCS and delimiter.
+        fragment_bits = 8 * (mac.mac_header_bytes + mac.fcs_bytes + mac.delimiter_bytes)
         for i in np.flatnonzero(layout >= 0).tolist():
-            budget = bits[i]
+            budget = bits[i] - mac.service_tail_bits  # per PSDU (27.3.12)
             q = queues[i]
+            queued = sum(f.ul_left if ul else f.dl_left for f in q)
+            if budget < queued:
+                budget -= fragment_bits
             done: list[Frame] = []
             for f in q:
                 if budget <= 0:
@@ -275,69 +292,146 @@ class ChannelEngine:
     def run_tick(self, ul_bpss: NDArray, dl_bpss: NDArray) -> None:
         """Advance one tick with the stations' bits per subcarrier-symbol for UL and DL."""
         k = self.tick
+        mac = self.config.mac
+        beacon = mac.beacon_us if mac.beacon_due(k) else 0.0
         if not any(self.ul_q) and not any(self.dl_q):  # an idle tick
+            self.busy_us += beacon
             self.tick = k + 1
             return
-        mac = self.config.mac
         for queues, reserve in ((self.ul_q, self.dl_reserve_ticks), (self.dl_q, 0)):
             for q in queues:
                 if q and any(f.deadline_tick - reserve <= k for f in q):
                     for f in [f for f in q if f.deadline_tick - reserve <= k]:
                         q.remove(f)
                         self._finish(f, "late", k)
-        busy = 0.0
-        n_dl = 0
-        e_dl = dl_bpss * mac.dl_data_symbols
-        demand = self._demand(self.dl_q, False, k, e_dl)
-        if demand is not None:
-            layout = self.dl_allocator.allocate(demand)
-            self._record(k, "dl", layout)
-            n_dl = int(np.count_nonzero(layout >= 0))
-            if n_dl:
-                self._serve(self.dl_q, False, k, layout, e_dl)
-                data_us = mac.dl_data_symbols * self.symbol_us
-                self.stats.dl_ru_us += np.where(
-                    layout >= 0, self._sd[layout] / self._full_sd * data_us, 0.0
-                )
-                busy += self._airtime("dl", n_dl, 0)
-        n_ul = sum(1 for q in self.ul_q if q)
-        if n_ul:
-            # The allocator sizes RUs with the PPDU length it would get if every queued station
-            # were triggered (a lower bound); the Trigger frame and the multi-STA BlockAck then
-            # address the stations it scheduled, so the PPDU gets the symbols that leaves.
-            n_sym = self._airtime("sym", min(n_ul, self._max_users), n_dl)
-            if n_sym > 0:
-                demand = self._demand(self.ul_q, True, k, ul_bpss * n_sym)
-                if demand is not None:
-                    layout = self.ul_allocator.allocate(demand)
-                    self._record(k, "ul", layout)
-                    n_sched = int(np.count_nonzero(layout >= 0))
-                    if n_sched:
-                        n_sym = self._airtime("sym", n_sched, n_dl)
-                        self._serve(self.ul_q, True, k, layout, ul_bpss * n_sym)
-                        data_us = n_sym * self.symbol_us
-                        self.stats.ul_ru_us += np.where(
-                            layout >= 0, self._sd[layout] / self._full_sd * data_us, 0.0
-                        )
-                        busy += self._airtime("ul", n_sched, 0)
-                        busy += data_us
-        if busy:
+        busy = beacon + self._poll(k, ul_bpss)
+        dl_ready = [i for i, q in enumerate(self.dl_q) if any(f.dl_ready_tick <= k for f in q)]
+        if dl_ready:
+            busy += self._downlink(k, dl_ready, dl_bpss)
+        busy += self._uplink(k, ul_bpss, busy - beacon)
+        if busy > beacon:
             busy += mac.channel_access_us
         self.busy_us += busy
         self.tick = k + 1
 
-    def _airtime(self, what: str, n_users: int, n_dl: int) -> float:
-        """``MacTiming`` figures of a tick, cached by user counts (they are pure functions)."""
-        key = (what, n_users, n_dl)
+    def _downlink(self, k: int, ready: list[int], dl_bpss: NDArray) -> float:
+        """One DL MU PPDU with every ready state frame the layout fits, in full: airtime in us.
+
+        The allocator lays out RUs for a PPDU sized as if the ready stations shared the band
+        equally, every frame due now (an MPDU is not split over PPDUs); the PPDU then lasts as
+        long as its longest A-MPDU on its RU needs (at most ``dl_data_symbols``).
+        """
+        mac = self.config.mac
+        n_sym, _ = self._dl_symbols(ready, dl_bpss, self._equal_ru_sd(len(ready)))
+        demand = self._demand(self.dl_q, False, k, dl_bpss * n_sym)
+        if demand is None:
+            return 0.0
+        demand = TickDemand(
+            demand.backlog_bits,
+            demand.head_bits,
+            np.ones_like(demand.slack_ticks),
+            demand.bits_per_subcarrier,
+            demand.weights,
+        )
+        layout = self.dl_allocator.allocate(demand)
+        self._record(k, "dl", layout)
+        users = np.flatnonzero(layout >= 0).tolist()
+        if not users:
+            return 0.0
+        sd = int(min(self._sd[layout[i]] for i in users))
+        n_sym, ack_sym = self._dl_symbols(users, dl_bpss, sd, self._sd[layout])
+        e_dl = dl_bpss * n_sym
+        self._serve(self.dl_q, False, k, layout, e_dl)
+        data_us = n_sym * self.symbol_us
+        self.stats.dl_ru_us += np.where(
+            layout >= 0, self._sd[layout] / self._full_sd * data_us, 0.0
+        )
+        return mac.dl_exchange_us(len(users), n_sym, ack_sym, self.config.phy)
+
+    def _uplink(self, k: int, ul_bpss: NDArray, busy_us: float) -> float:
+        """The trigger-based UL exchange of tick ``k`` after ``busy_us`` of other exchanges."""
+        n_ul = sum(1 for i in range(self.n) if self._known(i))
+        if not n_ul:
+            return 0.0
+        # The allocator sizes RUs with the PPDU length it would get if every station with a
+        # reported queue were triggered (a lower bound); the Trigger frame and the multi-STA
+        # BlockAck then address the stations it scheduled, so the PPDU gets the symbols left.
+        n_sym = self._ul_symbols(min(n_ul, self._max_users), busy_us)
+        if n_sym <= 0:
+            return 0.0
+        demand = self._demand(self.ul_q, True, k, ul_bpss * n_sym)
+        if demand is None:
+            return 0.0
+        layout = self.ul_allocator.allocate(demand)
+        self._record(k, "ul", layout)
+        n_sched = int(np.count_nonzero(layout >= 0))
+        if not n_sched:
+            return 0.0
+        n_sym = self._ul_symbols(n_sched, busy_us)
+        self._serve(self.ul_q, True, k, layout, ul_bpss * n_sym)
+        for i in np.flatnonzero(layout >= 0).tolist():
+            self._reported[i] = k  # its A-MPDU carries a BSR (HE A-Control, 9.2.4.6a.4)
+        data_us = n_sym * self.ul_symbol_us
+        self.stats.ul_ru_us += np.where(
+            layout >= 0, self._sd[layout] / self._full_sd * data_us, 0.0
+        )
+        return self.config.mac.ul_overhead_us(n_sched, self.config.phy) + data_us
+
+    def _known(self, i: int) -> bool:
+        """Whether the AP knows of a queued camera frame of station ``i`` (from a BSR)."""
+        q = self.ul_q[i]
+        return bool(q) and q[0].capture_tick <= self._reported[i]
+
+    def _poll(self, k: int, ul_bpss: NDArray) -> float:
+        """BSRP exchanges of tick ``k`` (every ``bsrp_interval_ticks``): airtime in us.
+
+        Every station whose queue the AP believes empty is polled; each BSRP Trigger addresses
+        at most as many stations as the channel has 26-tone RUs, each on an equal RU.
+        """
+        mac, phy = self.config.mac, self.config.phy
+        if k % mac.bsrp_interval_ticks:
+            return 0.0
+        idle = [i for i in range(self.n) if not self._known(i)]
+        airtime = 0.0
+        for start in range(0, len(idle), self._max_users):
+            group = idle[start : start + self._max_users]
+            sd = self._equal_ru_sd(len(group))
+            b = float(np.min(ul_bpss[group]))
+            n_sym = mac.data_symbols(mac.qos_null_bytes + mac.delimiter_bytes, sd, b)
+            airtime += mac.bsrp_exchange_us(len(group), n_sym, phy)
+            self._reported[group] = k
+        return airtime
+
+    def _equal_ru_sd(self, n_users: int) -> int:
+        """Data subcarriers of the largest RU size with room for ``n_users`` equal RUs."""
+        plan = self.plan
+        tones = max(t for t in plan.sizes if plan.count(t) >= min(n_users, self._max_users))
+        return plan.of_size(tones)[0].data_subcarriers
+
+    def _dl_symbols(
+        self, users: list[int], dl_bpss: NDArray, sd: int, sd_of: NDArray | None = None
+    ) -> tuple[int, int]:
+        """Data symbols of a DL MU PPDU (its longest A-MPDU) and of the block-ack TB PPDU.
+
+        Each user's A-MPDU is on ``sd_of[user]`` data subcarriers (default ``sd`` each); the
+        acks come back on RUs of ``sd`` subcarriers.
+        """
+        mac = self.config.mac
+        need = 1
+        for i in users:
+            nbytes = math.ceil(sum(f.dl_left for f in self.dl_q[i]) / 8)
+            sub = sd if sd_of is None else int(sd_of[i])
+            need = max(need, mac.data_symbols(nbytes, sub, float(dl_bpss[i])))
+        b = float(np.min(dl_bpss[users]))
+        ack = mac.data_symbols(mac.block_ack_bytes + mac.delimiter_bytes, sd, b)
+        return min(mac.dl_data_symbols, need), ack
+
+    def _ul_symbols(self, n_users: int, busy_us: float) -> int:
+        """``MacTiming.ul_data_symbols``, cached by user count and busy time."""
+        key = (n_users, round(busy_us, 6))
         value = self._airtime_cache.get(key)
         if value is None:
-            mac, bw, sym = self.config.mac, self.config.phy.bandwidth_mhz, self.symbol_us
-            if what == "sym":
-                value = mac.ul_data_symbols(n_users, n_dl, sym, bw)
-            elif what == "ul":
-                value = mac.ul_overhead_us(n_users, sym)
-            else:
-                value = mac.dl_exchange_us(n_users, sym, bw)
+            value = self.config.mac.ul_data_symbols(n_users, busy_us, self.config.phy)
             self._airtime_cache[key] = value
         return value
 

@@ -1,10 +1,28 @@
 """802.11ax MAC airtime of one schedule tick: the frame exchanges, their PPDUs and overheads.
 
-:class:`MacTiming` holds every overhead of the two frame exchanges of a schedule tick
-explicitly: a downlink multi-user exchange (``eq_air_dl``: HE MU PPDU, SIFS, the stations'
-block acks in an HE TB PPDU, SIFS) and a trigger-based uplink exchange (``eq_air_ul``: basic
-Trigger frame, SIFS, HE TB PPDU, SIFS, multi-STA BlockAck, SIFS), after one channel access.
-The PHY rates and the RU plan the data symbols carry are in :mod:`codesign_mb.wifi.phy`.
+One tick is one TXOP of the AP, won by EDCA (``eq_air_ul``, ``eq_air_dl``)::
+
+    access | [BSRP exchange] | [DL MU exchange] | [UL trigger-based exchange]
+
+- **access**: AIFS[AC] + mean backoff ``CWmin / 2`` slots (IEEE 802.11ax-2021 10.23.2). The
+  stations do not contend: they send only when triggered (their MU EDCA parameter set, 26.2.7,
+  is assumed to keep them off the channel), so there are no collisions.
+- **BSRP exchange**: the AP learns a station's queue only from a buffer status report (BSR,
+  26.5.5): a BSRP Trigger frame solicits a QoS Null frame with a BSR from every polled station
+  in one HE TB PPDU. A station that sends data reports its queue in the same A-MPDU (the BSR
+  Control subfield of its HE A-Control, 9.2.4.6a.4), so only stations whose queue the AP
+  believes empty are polled, every ``bsrp_interval_ticks``.
+- **DL MU exchange**: one HE MU PPDU carries every ready state frame (one A-MPDU per station
+  on its RU); the stations return their block acks in an HE TB PPDU (26.5.2).
+- **UL exchange**: basic Trigger frame, SIFS, HE TB PPDU with every data symbol left in the
+  tick, SIFS, multi-STA BlockAck (26.5.3).
+
+A beacon (non-HT, basic rate, after its own channel access) takes its airtime out of the tick
+it falls in. Frame sizes count every header: per MSDU LLC/SNAP, IP and UDP; per MPDU the QoS
+Data MAC header with HT Control and FCS; per A-MPDU subframe a delimiter and padding; per PPDU
+and user the SERVICE field and tail bits; an A-MPDU that ends inside an MPDU sends it as a
+dynamic fragment (26.3), one more MAC header, FCS and delimiter. Not modelled:
+retransmissions (a frame the channel loses is lost, ``eq_per``), other BSSs, RTS/CTS.
 """
 
 from __future__ import annotations
@@ -12,13 +30,16 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+from codesign_mb.wifi.phy import PhyConfig
+
 __all__ = ["MacTiming", "legacy_ppdu_us"]
 
 
 def legacy_ppdu_us(payload_bytes: int, rate_mbps: float) -> float:
     """Airtime of a non-HT (legacy OFDM) PPDU: 20 us preamble + 4 us symbols.
 
-    ``20 + 4 * ceil((16 + 8 L + 6) / (4 * rate))``: SERVICE (16) and tail (6) bits included.
+    ``20 + 4 * ceil((16 + 8 L + 6) / (4 * rate))``: SERVICE (16) and tail (6) bits included
+    (IEEE 802.11-2020 17.4.3, TXTIME of an OFDM PPDU).
     """
     bits_per_symbol = 4.0 * rate_mbps
     return 20.0 + 4.0 * math.ceil((16 + 8 * payload_bytes + 6) / bits_per_symbol)
@@ -26,121 +47,193 @@ def legacy_ppdu_us(payload_bytes: int, rate_mbps: float) -> float:
 
 @dataclass(frozen=True)
 class MacTiming:
-    """Every overhead of one schedule tick, explicit (IEEE 802.11ax-2021 clauses 26, 27).
-
-    One tick of ``tick_us`` holds one channel access, then (if any downlink frame is queued)
-    a DL MU exchange, then (if any uplink frame is queued) a trigger-based UL exchange:
-
-    ``T_DL = T_MU(N_dl) + SIFS + T_TB(ack) + SIFS`` (``eq_air_dl``),
-    ``T_UL = T_trig(n) + SIFS + T_TB(N_ul) + SIFS + T_MBA(n) + SIFS`` (``eq_air_ul``),
-
-    and the UL PPDU gets every data symbol that fits: ``N_ul = floor((tick - access - T_DL -
-    overheads of T_UL) / T_sym)``.
+    """Every overhead of one schedule tick, explicit (IEEE 802.11ax-2021 clauses 9, 10, 26, 27).
 
     Parameters
     ----------
     tick_us:
         Schedule update period (paper Table II: 1 ms).
-    sifs_us:
-        Short interframe space (5 GHz: 16 us).
-    channel_access_us:
-        AIFS plus mean backoff of the AP once per tick (e.g. AC_VI: 34 + 3.5 * 9 us).
+    sifs_us, slot_us:
+        SIFS 16 us and slot 9 us of the 5 GHz OFDM PHY (Table 17-21), which the HE PHY
+        characteristics (27.4) keep.
+    aifsn, cw_min:
+        The AP's EDCA parameters: AC_VI's default AIFSN 2 and CWmin 7 (Table 9-155).
     legacy_rate_mbps:
         Non-HT rate of the Trigger and multi-STA BlockAck frames (6, 12, 24 Mb/s ...).
     trigger_base_bytes:
-        Basic Trigger frame without user info: MAC header 16 + common info 8 + FCS 4 (+ pad).
-    trigger_user_bytes:
-        User Info field per scheduled station (basic trigger: 6).
+        Trigger frame without User Info: FC 2 + Duration 2 + RA 6 + TA 6 + Common Info 8
+        + FCS 4 (9.3.1.22).
+    trigger_user_bytes, bsrp_user_bytes:
+        User Info field per station: 5 bytes, plus the 1-byte Trigger Dependent User Info of
+        a basic Trigger (9.3.1.22.2); a BSRP Trigger has none.
     mba_base_bytes, mba_user_bytes:
-        Multi-STA BlockAck: header 16 + BA control 2 + FCS 4; per station AID/TID 2 + SSN 2
-        + 8-byte bitmap.
+        Multi-STA BlockAck: FC 2 + Duration 2 + RA 6 + TA 6 + BA Control 2 + FCS 4; per
+        station AID TID Info 2 + Starting Sequence Control 2 + 64-bit bitmap 8 (9.3.1.9.7).
+    block_ack_bytes:
+        Compressed BlockAck a station returns for its DL A-MPDU: 16 + 2 + 2 + 8 + FCS 4
+        (9.3.1.9.3).
+    qos_null_bytes:
+        QoS Null frame with HT Control (carrying the BSR): MAC header 26 + 4 + FCS 4.
     he_legacy_preamble_us:
-        L-STF 8 + L-LTF 8 + L-SIG 4 + RL-SIG 4 + HE-SIG-A 8 us.
+        L-STF 8 + L-LTF 8 + L-SIG 4 + RL-SIG 4 + HE-SIG-A 8 us (27.3.11, Table 27-12).
     he_stf_tb_us, he_stf_mu_us:
-        HE-STF of an HE TB PPDU (8 us) and of an HE MU PPDU (4 us).
-    he_ltf_us, he_ltf_count:
-        One HE-LTF symbol (2x LTF + 1.6 us GI = 8 us) and how many (one per stream).
+        HE-STF of an HE TB PPDU (8 us) and of an HE MU PPDU (4 us) (27.3.11.9).
     sig_b_bits_per_symbol, sig_b_common_bits, sig_b_user_bits:
         HE-SIG-B at MCS 0 (26 bits per 4 us symbol and 20 MHz content channel), its common
-        field and one 21-bit user field per station, split over the content channels.
+        field and one 21-bit user field per station, split over the content channels
+        (27.3.11.8).
     packet_extension_us:
-        PE field at the end of every HE PPDU (0-16 us).
+        PE field at the end of every HE PPDU (0-16 us, 27.3.12).
     dl_data_symbols:
-        Data symbols of the DL MU PPDU when downlink frames are queued.
-    dl_ack_symbols:
-        Data symbols of the HE TB PPDU that carries the stations' block acks of the DL.
-    mpdu_payload_bytes, mpdu_overhead_bytes:
-        Frames are split into MPDUs of at most ``mpdu_payload_bytes``; each costs
-        ``mpdu_overhead_bytes`` more (MAC header 26 + FCS 4 + A-MPDU delimiter 4).
+        Most data symbols of a DL MU PPDU; it gets the fewest that carry its longest A-MPDU.
+    mac_header_bytes, fcs_bytes, delimiter_bytes:
+        Per MPDU: QoS Data header 26 + HT Control 4 (9.3.2.1), FCS 4; per A-MPDU subframe a
+        4-byte delimiter, subframes padded to 4 bytes (9.7.1).
+    llc_snap_bytes, ip_udp_bytes, mtu_bytes:
+        Per MSDU: LLC/SNAP 8 (RFC 1042), IPv4 20 + UDP 8; an application frame is cut into
+        MSDUs of at most ``mtu_bytes`` of IP packet (1500).
+    service_tail_bits:
+        SERVICE field 16 + BCC tail 6 bits of every PSDU (27.3.12).
+    bsrp_interval_ticks:
+        Ticks between BSRP polls of the stations whose queue the AP believes empty.
+    beacon_interval_us, beacon_bytes, beacon_rate_mbps:
+        Beacon every 100 TU (102.4 ms); its size (an assumption: 300 bytes with the HE
+        elements) and its non-HT rate (the 6 Mb/s basic rate).
     """
 
     tick_us: float = 1000.0
     sifs_us: float = 16.0
-    channel_access_us: float = 66.0
+    slot_us: float = 9.0
+    aifsn: int = 2
+    cw_min: int = 7
     legacy_rate_mbps: float = 24.0
     trigger_base_bytes: int = 28
     trigger_user_bytes: int = 6
+    bsrp_user_bytes: int = 5
     mba_base_bytes: int = 22
     mba_user_bytes: int = 12
+    block_ack_bytes: int = 32
+    qos_null_bytes: int = 34
     he_legacy_preamble_us: float = 32.0
     he_stf_tb_us: float = 8.0
     he_stf_mu_us: float = 4.0
-    he_ltf_us: float = 8.0
-    he_ltf_count: int = 1
     sig_b_bits_per_symbol: int = 26
     sig_b_common_bits: int = 18
     sig_b_user_bits: int = 21
     packet_extension_us: float = 4.0
-    dl_data_symbols: int = 6
-    dl_ack_symbols: int = 2
-    mpdu_payload_bytes: int = 1500
-    mpdu_overhead_bytes: int = 34
+    dl_data_symbols: int = 16
+    mac_header_bytes: int = 30
+    fcs_bytes: int = 4
+    delimiter_bytes: int = 4
+    llc_snap_bytes: int = 8
+    ip_udp_bytes: int = 28
+    mtu_bytes: int = 1500
+    service_tail_bits: int = 22
+    bsrp_interval_ticks: int = 5
+    beacon_interval_us: float = 102_400.0
+    beacon_bytes: int = 300
+    beacon_rate_mbps: float = 6.0
 
     def __post_init__(self) -> None:
-        for name in (
+        positive = (
             "tick_us",
+            "slot_us",
             "legacy_rate_mbps",
-            "he_ltf_us",
             "sig_b_bits_per_symbol",
-            "mpdu_payload_bytes",
-        ):
+            "beacon_interval_us",
+            "beacon_rate_mbps",
+        )
+        for name in positive:
             value = getattr(self, name)
             if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
                 raise ValueError(f"{name} must be > 0, got {value!r}")
-        for name in (
+        non_negative = (
             "sifs_us",
-            "channel_access_us",
-            "trigger_base_bytes",
-            "trigger_user_bytes",
-            "mba_base_bytes",
-            "mba_user_bytes",
             "he_legacy_preamble_us",
             "he_stf_tb_us",
             "he_stf_mu_us",
-            "sig_b_common_bits",
-            "sig_b_user_bits",
             "packet_extension_us",
-            "dl_ack_symbols",
-            "mpdu_overhead_bytes",
-        ):
+        )
+        for name in non_negative:
             value = getattr(self, name)
             if not (isinstance(value, int | float) and math.isfinite(value) and value >= 0):
                 raise ValueError(f"{name} must be >= 0, got {value!r}")
-        for name in ("he_ltf_count", "dl_data_symbols"):
+        counts = (
+            "aifsn",
+            "cw_min",
+            "trigger_base_bytes",
+            "trigger_user_bytes",
+            "bsrp_user_bytes",
+            "mba_base_bytes",
+            "mba_user_bytes",
+            "block_ack_bytes",
+            "qos_null_bytes",
+            "sig_b_common_bits",
+            "sig_b_user_bits",
+            "mac_header_bytes",
+            "fcs_bytes",
+            "delimiter_bytes",
+            "llc_snap_bytes",
+            "ip_udp_bytes",
+            "service_tail_bits",
+            "beacon_bytes",
+        )
+        for name in counts:
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+                raise ValueError(f"{name} must be an integer >= 0, got {value!r}")
+        for name in ("dl_data_symbols", "bsrp_interval_ticks"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
+        if not (isinstance(self.mtu_bytes, int) and self.mtu_bytes > self.ip_udp_bytes):
+            raise ValueError(f"mtu_bytes must exceed ip_udp_bytes, got {self.mtu_bytes!r}")
 
-    # -- frame sizes --------------------------------------------------------------------------
+    # -- access ---------------------------------------------------------------------------------
+    @property
+    def channel_access_us(self) -> float:
+        """AIFS + mean backoff: ``SIFS + AIFSN slot + CWmin / 2 slot`` (10.23.2)."""
+        return self.sifs_us + self.aifsn * self.slot_us + self.cw_min / 2 * self.slot_us
+
+    @property
+    def beacon_us(self) -> float:
+        """A beacon's channel access and non-HT PPDU."""
+        return self.channel_access_us + legacy_ppdu_us(self.beacon_bytes, self.beacon_rate_mbps)
+
+    def beacon_due(self, tick: int) -> bool:
+        """Whether a beacon (every ``beacon_interval_us``, the first at 0) falls in ``tick``."""
+        start, end = tick * self.tick_us, (tick + 1) * self.tick_us
+        return math.ceil(start / self.beacon_interval_us - 1e-9) * self.beacon_interval_us < end
+
+    # -- frame sizes ----------------------------------------------------------------------------
+    def msdu_count(self, payload_bytes: int) -> int:
+        """MSDUs (IP packets of at most ``mtu_bytes``) of an application frame."""
+        return max(1, math.ceil(payload_bytes / (self.mtu_bytes - self.ip_udp_bytes)))
+
+    def ampdu_bytes(self, payload_bytes: int) -> int:
+        """A-MPDU carrying an application frame: every MSDU in its own MPDU and subframe."""
+        n = self.msdu_count(payload_bytes)
+        per_mpdu = self.llc_snap_bytes + self.ip_udp_bytes + self.mac_header_bytes + self.fcs_bytes
+        chunk = self.mtu_bytes - self.ip_udp_bytes
+        sizes = [chunk] * (n - 1) + [payload_bytes - chunk * (n - 1)]
+        subframes = [self.delimiter_bytes + s + per_mpdu for s in sizes]
+        return sum(4 * math.ceil(s / 4) for s in subframes[:-1]) + subframes[-1]
+
     def psdu_bits(self, payload_bytes: int) -> int:
-        """Bits on the air for a MAC frame of ``payload_bytes``, MPDU overheads included."""
-        n_mpdu = max(1, math.ceil(payload_bytes / self.mpdu_payload_bytes))
-        return 8 * (payload_bytes + n_mpdu * self.mpdu_overhead_bytes)
+        """Bits of the A-MPDU of an application frame of ``payload_bytes`` (all headers)."""
+        return 8 * self.ampdu_bytes(payload_bytes)
 
-    # -- PPDUs --------------------------------------------------------------------------------
-    def trigger_us(self, n_users: int) -> float:
-        """Basic Trigger frame (non-HT PPDU) addressing ``n_users`` stations."""
-        size = self.trigger_base_bytes + self.trigger_user_bytes * max(n_users, 1)
+    def data_symbols(self, psdu_bytes: int, data_subcarriers: int, bits_per_sc: float) -> int:
+        """HE data symbols of one user's PSDU on its RU: ``ceil((22 + 8 L) / (N_SD b))``."""
+        return math.ceil(
+            (self.service_tail_bits + 8 * psdu_bytes) / (data_subcarriers * bits_per_sc)
+        )
+
+    # -- PPDUs ----------------------------------------------------------------------------------
+    def trigger_us(self, n_users: int, *, bsrp: bool = False) -> float:
+        """Basic (or BSRP) Trigger frame, non-HT PPDU, addressing ``n_users`` stations."""
+        per_user = self.bsrp_user_bytes if bsrp else self.trigger_user_bytes
+        size = self.trigger_base_bytes + per_user * max(n_users, 1)
         return legacy_ppdu_us(size, self.legacy_rate_mbps)
 
     def multi_sta_ba_us(self, n_users: int) -> float:
@@ -148,78 +241,75 @@ class MacTiming:
         size = self.mba_base_bytes + self.mba_user_bytes * max(n_users, 1)
         return legacy_ppdu_us(size, self.legacy_rate_mbps)
 
-    def he_tb_ppdu_us(self, n_symbols: int, symbol_us: float) -> float:
-        """HE trigger-based PPDU: legacy part, HE-STF 8 us, HE-LTFs, data, PE."""
-        preamble = self.he_legacy_preamble_us + self.he_stf_tb_us
-        return (
-            preamble
-            + self.he_ltf_count * self.he_ltf_us
-            + n_symbols * symbol_us
-            + (self.packet_extension_us)
-        )
+    def he_tb_ppdu_us(self, n_symbols: int, phy: PhyConfig) -> float:
+        """HE TB PPDU: legacy part and HE-SIG-A, HE-STF 8 us, HE-LTFs, data at the UL GI, PE."""
+        preamble = self.he_legacy_preamble_us + self.he_stf_tb_us + phy.ul_ltf_us
+        return preamble + n_symbols * phy.ul_symbol_us + self.packet_extension_us
 
-    def he_mu_ppdu_us(
-        self, n_symbols: int, n_users: int, symbol_us: float, bandwidth_mhz: int
-    ) -> float:
+    def he_mu_ppdu_us(self, n_symbols: int, n_users: int, phy: PhyConfig) -> float:
         """HE MU PPDU: legacy part, HE-SIG-B (users over the content channels), STF, LTFs, data."""
-        channels = 1 if bandwidth_mhz == 20 else 2
+        channels = 1 if phy.bandwidth_mhz == 20 else 2
         users_per_channel = math.ceil(max(n_users, 1) / channels)
         sig_b_bits = self.sig_b_common_bits + self.sig_b_user_bits * users_per_channel
         sig_b_us = 4.0 * math.ceil(sig_b_bits / self.sig_b_bits_per_symbol)
-        preamble = self.he_legacy_preamble_us + sig_b_us + self.he_stf_mu_us
-        return (
-            preamble
-            + self.he_ltf_count * self.he_ltf_us
-            + n_symbols * symbol_us
-            + (self.packet_extension_us)
-        )
+        preamble = self.he_legacy_preamble_us + sig_b_us + self.he_stf_mu_us + phy.dl_ltf_us
+        return preamble + n_symbols * phy.symbol_us + self.packet_extension_us
 
-    # -- the tick -----------------------------------------------------------------------------
-    def dl_exchange_us(self, n_users: int, symbol_us: float, bandwidth_mhz: int) -> float:
+    # -- exchanges ------------------------------------------------------------------------------
+    def bsrp_exchange_us(self, n_users: int, n_symbols: int, phy: PhyConfig) -> float:
+        """BSRP Trigger, SIFS, the stations' QoS Null + BSR in an HE TB PPDU, SIFS."""
+        if n_users <= 0:
+            return 0.0
+        tb = self.he_tb_ppdu_us(n_symbols, phy)
+        return self.trigger_us(n_users, bsrp=True) + self.sifs_us + tb + self.sifs_us
+
+    def dl_exchange_us(
+        self, n_users: int, n_symbols: int, ack_symbols: int, phy: PhyConfig
+    ) -> float:
         """``eq_air_dl``: MU PPDU + SIFS + block acks in a TB PPDU + SIFS (0 without DL users)."""
         if n_users <= 0:
             return 0.0
-        mu = self.he_mu_ppdu_us(self.dl_data_symbols, n_users, symbol_us, bandwidth_mhz)
-        ack = self.he_tb_ppdu_us(self.dl_ack_symbols, symbol_us)
-        return mu + self.sifs_us + ack + self.sifs_us
+        mu = self.he_mu_ppdu_us(n_symbols, n_users, phy)
+        return mu + self.sifs_us + self.he_tb_ppdu_us(ack_symbols, phy) + self.sifs_us
 
-    def ul_overhead_us(self, n_users: int, symbol_us: float) -> float:
-        """``eq_air_ul`` without the data symbols: trigger, SIFS, TB preamble, SIFS, M-BA, SIFS."""
+    def ul_overhead_us(self, n_users: int, phy: PhyConfig) -> float:
+        """``eq_air_ul`` without the data symbols: trigger, SIFS, TB preamble, SIFS, M-BA."""
         return (
             self.trigger_us(n_users)
             + self.sifs_us
-            + self.he_tb_ppdu_us(0, symbol_us)
+            + self.he_tb_ppdu_us(0, phy)
             + self.sifs_us
             + self.multi_sta_ba_us(n_users)
-            + self.sifs_us
         )
 
-    def ul_data_symbols(
-        self, n_ul_users: int, n_dl_users: int, symbol_us: float, bandwidth_mhz: int
-    ) -> int:
-        """Data symbols left for the UL TB PPDU in one tick (0 if none fit)."""
+    def ul_data_symbols(self, n_ul_users: int, busy_us: float, phy: PhyConfig) -> int:
+        """Data symbols left for the UL TB PPDU in a tick whose other exchanges take ``busy_us``."""
         if n_ul_users <= 0:
             return 0
         left = (
-            self.tick_us
-            - self.channel_access_us
-            - self.dl_exchange_us(n_dl_users, symbol_us, bandwidth_mhz)
-            - self.ul_overhead_us(n_ul_users, symbol_us)
+            self.tick_us - self.channel_access_us - busy_us - self.ul_overhead_us(n_ul_users, phy)
         )
-        return max(0, math.floor(left / symbol_us + 1e-9))
+        return max(0, math.floor(left / phy.ul_symbol_us + 1e-9))
 
-    def breakdown(
-        self, n_ul_users: int, n_dl_users: int, symbol_us: float, bandwidth_mhz: int
-    ) -> dict[str, float]:
-        """Airtime of each part of a tick, in us (for the docs and ``phy-table``)."""
-        n_ul = self.ul_data_symbols(n_ul_users, n_dl_users, symbol_us, bandwidth_mhz)
+    def max_ul_data_symbols(self, phy: PhyConfig, *, with_dl: bool) -> int:
+        """Most UL data symbols of any tick (one user, no poll, no beacon), next to a DL exchange.
+
+        The shortest DL exchange (one user, one data and one ack symbol) leaves the most: the
+        offline LP's bound relies on no tick ever getting more.
+        """
+        busy = self.dl_exchange_us(1, 1, 1, phy) if with_dl else 0.0
+        return self.ul_data_symbols(1, busy, phy)
+
+    def breakdown(self, n_ul_users: int, n_dl_users: int, phy: PhyConfig) -> dict[str, float]:
+        """Airtime of each part of a tick with one-symbol DL PPDU and acks, in us (for the docs)."""
+        dl = self.dl_exchange_us(n_dl_users, 1, 1, phy)
+        n_ul = self.ul_data_symbols(n_ul_users, dl, phy)
         return {
             "channel_access_us": self.channel_access_us,
-            "dl_exchange_us": self.dl_exchange_us(n_dl_users, symbol_us, bandwidth_mhz),
-            "dl_data_us": self.dl_data_symbols * symbol_us if n_dl_users else 0.0,
+            "dl_exchange_us": dl,
             "trigger_us": self.trigger_us(n_ul_users),
-            "ul_overhead_us": self.ul_overhead_us(n_ul_users, symbol_us),
+            "ul_overhead_us": self.ul_overhead_us(n_ul_users, phy),
             "ul_data_symbols": float(n_ul),
-            "ul_data_us": n_ul * symbol_us,
+            "ul_data_us": n_ul * phy.ul_symbol_us,
             "multi_sta_ba_us": self.multi_sta_ba_us(n_ul_users),
         }

@@ -15,14 +15,15 @@ and ``V_fk`` of its state frame that have been sent (``eq_lp``)::
 
 with ``U`` defined on ``[capture, deadline - 1 - p)`` and ``V`` on ``[capture + 1 + p,
 deadline)`` (``eq_deadline``), ``b_ik`` the bits per subcarrier-symbol of station ``i``,
-``N_UL`` the most UL data symbols a tick can hold (one user, no DL), ``N_UL'`` the most when
-the tick also holds a DL exchange (one user each way), ``N_DL`` the DL symbols, and ``S`` the
-data subcarriers of the full-band RU, which no valid layout exceeds. Every simulated schedule
-is feasible for this LP (with ``y_k = 1`` in the ticks that carry a DL PPDU: its layouts use at
-most ``S`` subcarriers, its PPDUs at most ``N_UL``, or ``N_UL'`` next to a DL exchange, and
-``N_DL`` symbols, and a state frame is queued only after its camera frame), so the optimum
-bounds the delivered count of any online allocator. Frames the channel will lose are left
-out: no schedule can deliver them.
+``N_UL`` the most UL data symbols a tick can hold (one user, no DL, no BSRP poll, no beacon),
+``N_UL'`` the most when the tick also holds a DL exchange (its shortest: one user, one data
+and one ack symbol), ``N_DL`` the most DL data symbols of a DL MU PPDU
+(``MacTiming.dl_data_symbols``), and ``S`` the data subcarriers of the full-band RU, which no
+valid layout exceeds. Every simulated schedule is feasible for this LP (with ``y_k = 1`` in
+the ticks that carry a DL PPDU: its layouts use at most ``S`` subcarriers, its PPDUs at most
+``N_UL``, or ``N_UL'`` next to a DL exchange, and at most ``N_DL`` symbols, and a state frame
+is queued only after its camera frame), so the optimum bounds the delivered count of any
+online allocator. Frames the channel will lose are left out: no schedule can deliver them.
 
 Solvers: HiGHS (``scipy.optimize.linprog``), Clarabel and OSQP, each called on the same
 matrices.
@@ -113,8 +114,8 @@ class _LpAssembly:
         mac, phy = cfg.mac, cfg.phy
         self.trace = trace
         self.p = cfg.traffic.processing_ticks(mac.tick_us)
-        self.n_ul = mac.ul_data_symbols(1, 0, phy.symbol_us, phy.bandwidth_mhz)
-        self.n_ul_dl = mac.ul_data_symbols(1, 1, phy.symbol_us, phy.bandwidth_mhz)
+        self.n_ul = mac.max_ul_data_symbols(phy, with_dl=False)
+        self.n_ul_dl = mac.max_ul_data_symbols(phy, with_dl=True)
         self.n_dl = mac.dl_data_symbols
         self.full = float(phy.plan.full_band_data_subcarriers)
         self.rows: list[NDArray[np.int64]] = []
@@ -379,7 +380,7 @@ def airtime_prices(trace: Trace) -> AirtimePrices:
     cfg = trace.config
     mac, phy = cfg.mac, cfg.phy
     p = cfg.traffic.processing_ticks(mac.tick_us)
-    n_ul = mac.ul_data_symbols(1, 0, phy.symbol_us, phy.bandwidth_mhz)
+    n_ul = mac.max_ul_data_symbols(phy, with_dl=False)
     full = float(phy.plan.full_band_data_subcarriers)
     ul_price = ticks["ul_price"].to_numpy()
     work, bill = [], []

@@ -17,6 +17,16 @@ Rates
 and ``T_GI`` in {0.8, 1.6, 3.2} us. E.g. 484-tone RU, MCS 11, 1 stream, 0.8 us GI:
 468 * 10 * 5/6 / 13.6 us = 286.8 Mb/s.
 
+Guard interval and HE-LTF
+-------------------------
+Not every GI goes with every PPDU: an HE TB PPDU (the uplink of OFDMA) uses 1.6 us with the
+1x or 2x HE-LTF or 3.2 us with the 4x HE-LTF (the Trigger frame's GI And HE-LTF Type subfield,
+IEEE 802.11ax-2021 9.3.1.22); an HE MU PPDU (the OFDMA downlink) uses 0.8 us with 2x or 4x,
+1.6 us with 2x, or 3.2 us with 4x (HE-SIG-A GI+LTF Size, 27.3.11.7). The DL and UL GI are
+therefore separate settings (:class:`PhyConfig`), and each HE-LTF symbol lasts its DFT period
+(1x 3.2, 2x 6.4, 4x 12.8 us, 27.3.11.10) plus its GI: 8 us for 2x + 1.6 us, 16 us for 4x +
+3.2 us.
+
 The airtime of a schedule tick (frame exchanges, MAC overheads) is in :mod:`codesign_mb.wifi.mac`.
 """
 
@@ -33,6 +43,10 @@ __all__ = [
     "BANDWIDTHS_MHZ",
     "DATA_SUBCARRIERS",
     "GUARD_INTERVALS_US",
+    "HE_LTF_DFT_US",
+    "HE_MU_GI_LTF",
+    "HE_TB_GI_LTF",
+    "HE_TB_GUARD_INTERVALS_US",
     "MCS_TABLE",
     "RU_TONES",
     "SYMBOL_DFT_US",
@@ -41,6 +55,7 @@ __all__ = [
     "ResourceUnit",
     "RuPlan",
     "data_rate_mbps",
+    "he_ltf_symbol_us",
     "ru_plan",
 ]
 
@@ -48,6 +63,15 @@ SYMBOL_DFT_US = 12.8
 """HE OFDM symbol duration without guard interval (78.125 kHz subcarrier spacing)."""
 
 GUARD_INTERVALS_US = (0.8, 1.6, 3.2)
+"""HE guard intervals (IEEE 802.11ax-2021 27.3.9: T_GI1.6 ... 0.8, 1.6, 3.2 us)."""
+HE_TB_GUARD_INTERVALS_US = (1.6, 3.2)
+"""GIs an HE TB PPDU may use (9.3.1.22, GI And HE-LTF Type: 1x/2x LTF + 1.6, 4x LTF + 3.2)."""
+HE_LTF_DFT_US = {1: 3.2, 2: 6.4, 4: 12.8}
+"""DFT period of a 1x, 2x and 4x HE-LTF symbol (27.3.11.10; the GI comes on top)."""
+HE_TB_GI_LTF = ((1.6, 1), (1.6, 2), (3.2, 4))
+"""(GI us, HE-LTF size) pairs allowed in an HE TB PPDU (9.3.1.22, Common Info field)."""
+HE_MU_GI_LTF = ((0.8, 2), (0.8, 4), (1.6, 2), (3.2, 4))
+"""(GI us, HE-LTF size) pairs allowed in an HE MU PPDU (27.3.11.7, HE-SIG-A GI+LTF Size)."""
 BANDWIDTHS_MHZ = (20, 40, 80)
 RU_TONES = (26, 52, 106, 242, 484, 996)
 DATA_SUBCARRIERS = {26: 24, 52: 48, 106: 102, 242: 234, 484: 468, 996: 980}
@@ -96,6 +120,28 @@ def _check_gi(gi_us: float) -> float:
     if not any(math.isclose(gi_us, g) for g in GUARD_INTERVALS_US):
         raise ValueError(f"guard_interval_us must be one of 0.8, 1.6, 3.2, got {gi_us!r}")
     return float(gi_us)
+
+
+def he_ltf_symbol_us(guard_interval_us: float, *, trigger_based: bool) -> float:
+    """One HE-LTF symbol: the LTF size that goes with the GI, plus the GI (27.3.11.10).
+
+    The 2x HE-LTF with 0.8 and 1.6 us (HE MU) or 1.6 us (HE TB), the 4x HE-LTF with 3.2 us:
+    the pairs every HE PPDU format allows (:data:`HE_MU_GI_LTF`, :data:`HE_TB_GI_LTF`).
+
+    Examples
+    --------
+    >>> he_ltf_symbol_us(1.6, trigger_based=True), he_ltf_symbol_us(3.2, trigger_based=True)
+    (8.0, 16.0)
+    >>> he_ltf_symbol_us(0.8, trigger_based=False)
+    7.2
+    """
+    gi = _check_gi(guard_interval_us)
+    size = 4 if math.isclose(gi, 3.2) else 2
+    allowed = HE_TB_GI_LTF if trigger_based else HE_MU_GI_LTF
+    if not any(math.isclose(gi, g) and size == n for g, n in allowed):
+        kind = "HE TB" if trigger_based else "HE MU"
+        raise ValueError(f"guard_interval_us {gi} is not allowed in an {kind} PPDU")
+    return round(HE_LTF_DFT_US[size] + gi, 9)
 
 
 def data_rate_mbps(
@@ -327,13 +373,16 @@ class PhyConfig:
     bandwidth_mhz:
         Channel width: 20, 40 or 80 MHz (the paper: 40).
     guard_interval_us:
-        HE guard interval: 0.8, 1.6 or 3.2 us.
+        GI of the downlink (HE MU PPDU) and of single-user PPDUs: 0.8, 1.6 or 3.2 us.
+    ul_guard_interval_us:
+        GI of the uplink HE TB PPDU: 1.6 or 3.2 us (0.8 is not allowed, 9.3.1.22).
     spatial_streams:
         ``N_SS`` of every station (1 or 2).
     """
 
     bandwidth_mhz: int = 40
     guard_interval_us: float = 0.8
+    ul_guard_interval_us: float = 1.6
     spatial_streams: int = 1
 
     def __post_init__(self) -> None:
@@ -342,13 +391,35 @@ class PhyConfig:
                 f"bandwidth_mhz must be one of {BANDWIDTHS_MHZ}, got {self.bandwidth_mhz!r}"
             )
         _check_gi(self.guard_interval_us)
+        if not any(math.isclose(self.ul_guard_interval_us, g) for g in HE_TB_GUARD_INTERVALS_US):
+            raise ValueError(
+                "ul_guard_interval_us must be 1.6 or 3.2 (HE TB PPDU, IEEE 802.11ax-2021 "
+                f"9.3.1.22), got {self.ul_guard_interval_us!r}"
+            )
         if isinstance(self.spatial_streams, bool) or self.spatial_streams not in (1, 2):
             raise ValueError(f"spatial_streams must be 1 or 2, got {self.spatial_streams!r}")
 
     @property
     def symbol_us(self) -> float:
-        """HE data symbol duration ``12.8 us + GI``."""
+        """Downlink HE data symbol duration ``12.8 us + GI``."""
         return SYMBOL_DFT_US + self.guard_interval_us
+
+    @property
+    def ul_symbol_us(self) -> float:
+        """Uplink (HE TB PPDU) data symbol duration ``12.8 us + UL GI``."""
+        return SYMBOL_DFT_US + self.ul_guard_interval_us
+
+    @property
+    def dl_ltf_us(self) -> float:
+        """HE-LTFs of an HE MU PPDU: one symbol per stream (27.3.11.10, ``N_HE-LTF = N_SS``)."""
+        return self.spatial_streams * he_ltf_symbol_us(self.guard_interval_us, trigger_based=False)
+
+    @property
+    def ul_ltf_us(self) -> float:
+        """HE-LTFs of an HE TB PPDU: one symbol per stream."""
+        return self.spatial_streams * he_ltf_symbol_us(
+            self.ul_guard_interval_us, trigger_based=True
+        )
 
     @property
     def plan(self) -> RuPlan:
@@ -360,15 +431,18 @@ class PhyConfig:
         return table[np.asarray(mcs, dtype=int)] * self.spatial_streams
 
     def rate_table(self) -> list[dict[str, float | int | str]]:
-        """Data rate of every (RU size, MCS) of this channel, in Mb/s (``eq_rate``)."""
+        """Rate of every (RU size, MCS) of this channel at the DL and UL GI, Mb/s (``eq_rate``)."""
         rows: list[dict[str, float | int | str]] = []
         for tones in self.plan.sizes:
             for m in MCS_TABLE:
-                rate = data_rate_mbps(
-                    tones,
-                    m.index,
-                    spatial_streams=self.spatial_streams,
-                    guard_interval_us=self.guard_interval_us,
+                rate, ul_rate = (
+                    data_rate_mbps(
+                        tones,
+                        m.index,
+                        spatial_streams=self.spatial_streams,
+                        guard_interval_us=gi,
+                    )
+                    for gi in (self.guard_interval_us, self.ul_guard_interval_us)
                 )
                 rows.append(
                     {
@@ -379,6 +453,7 @@ class PhyConfig:
                         "modulation": m.modulation,
                         "code_rate": round(m.code_rate, 4),
                         "rate_mbps": round(rate, 4),
+                        "ul_rate_mbps": round(ul_rate, 4),
                     }
                 )
         return rows

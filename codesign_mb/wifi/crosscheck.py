@@ -1,0 +1,307 @@
+"""Capacity of our cell model against ns-3's 802.11ax model on the same robot traffic.
+
+Both sides run ``N`` stations, each with one camera frame (13,500 B up) and one state frame
+(32 B down) per 40 ms period, at one fixed MCS, captures staggered or synchronised, and no
+channel errors. A frame is delivered if its state frame reaches the robot within the period
+(``eq_deadline``, ``tau = 1``); the *capacity* is the largest ``N`` with at least 95 % of the
+frames delivered, found by bisection (the delivered fraction falls with ``N``).
+
+Ours: the slot simulator (:class:`~codesign_mb.wifi.engine.ChannelEngine`) replays the
+traffic as a :class:`~codesign_mb.wifi.sim.Trace` under an allocator. ns-3:
+:mod:`codesign_mb.wifi.ns3_driver`, single-user EDCA and its round-robin OFDMA scheduler.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from codesign_mb.wifi.channel import ChannelConfig
+from codesign_mb.wifi.config import WifiConfig
+from codesign_mb.wifi.mac import MacTiming
+from codesign_mb.wifi.phy import PhyConfig
+from codesign_mb.wifi.sim import Trace, replay
+from codesign_mb.wifi.traffic import CAPTURE_MODES, TrafficConfig
+
+__all__ = [
+    "CROSSCHECK_TARGET",
+    "CrosscheckConfig",
+    "capacity",
+    "crosscheck",
+    "ours_delivered_fraction",
+]
+
+CROSSCHECK_TARGET = 0.95
+"""Delivered fraction that defines capacity."""
+
+OURS_ASSUMPTIONS = (
+    "AP wins one TXOP per 1 ms tick (AC_VI EDCA, mean backoff, no collisions: stations send "
+    "only when triggered); BSRP polls of idle stations every 5 ticks, BSR piggybacked on UL "
+    "data; one DL MU PPDU sends every ready state frame in full, block acks in an HE TB PPDU; "
+    "basic "
+    "Trigger + HE TB PPDU (UL GI 1.6 us, 2x HE-LTF) + multi-STA BlockAck; LLC/SNAP, IP, UDP, "
+    "MAC header, FCS, A-MPDU delimiters; beacons every 102.4 ms; no retransmissions."
+)
+NS3_ASSUMPTIONS = {
+    "su": "ns-3 3.44 802.11ax, EDCA single-user (AC_BE, A-MPDU + block ack), GI 0.8 us, "
+    "control frames at the MCS's non-HT reference rate, stations 2 m from the AP.",
+    "ofdma": "ns-3 3.44 802.11ax, RrMultiUserScheduler (DL OFDMA with aggregated MU-BAR "
+    "trigger, UL OFDMA after BSRP, access request every 1 ms, at most `mu_stations` per MU "
+    "PPDU), GI 1.6 us; stations also contend by EDCA.",
+}
+
+
+@dataclass(frozen=True)
+class CrosscheckConfig:
+    """The grid of a cross-check and how long each run simulates.
+
+    Parameters
+    ----------
+    mcs:
+        MCS values (the rows).
+    captures:
+        ``"staggered"`` and/or ``"synchronised"``.
+    schedulers:
+        Our allocators (``greedy``, ``convex``, ...); the best is compared.
+    ns3_access:
+        ns-3 access schemes (``su``, ``ofdma``); the best is compared.
+    bandwidth_mhz:
+        Channel width of both sides.
+    periods:
+        Frame periods per station counted (after ``skip_periods``).
+    max_stations:
+        Upper end of the capacity search.
+    mu_stations:
+        ns-3 round-robin scheduler's most stations per MU PPDU.
+    tolerance:
+        Allowed relative gap of our capacity to ns-3's best (the issue's 25 %).
+    """
+
+    mcs: tuple[int, ...] = (0, 3, 7)
+    captures: tuple[str, ...] = CAPTURE_MODES
+    schedulers: tuple[str, ...] = ("greedy", "convex")
+    ns3_access: tuple[str, ...] = ("su", "ofdma")
+    bandwidth_mhz: int = 40
+    periods: int = 8
+    skip_periods: int = 2
+    max_stations: int = 64
+    mu_stations: int = 9
+    tolerance: float = 0.25
+    mac: MacTiming = field(default_factory=MacTiming)
+
+    def __post_init__(self) -> None:
+        for m in self.mcs:
+            if not (isinstance(m, int) and 0 <= m <= 11):
+                raise ValueError(f"mcs must be integers in [0, 11], got {self.mcs!r}")
+        for c in self.captures:
+            if c not in CAPTURE_MODES:
+                raise ValueError(f"captures must be in {CAPTURE_MODES}, got {self.captures!r}")
+        if not 1 <= self.max_stations <= 200:
+            raise ValueError(f"max_stations must be in [1, 200], got {self.max_stations!r}")
+        if self.periods < 1 or self.skip_periods < 0:
+            raise ValueError("periods must be >= 1 and skip_periods >= 0")
+        if not 0 < self.tolerance < 1:
+            raise ValueError(f"tolerance must be in (0, 1), got {self.tolerance!r}")
+
+    def cell(self, mcs: int, capture: str) -> WifiConfig:
+        """Our cell: fixed MCS, no frame errors, the traffic of paper Table II."""
+        return WifiConfig(
+            phy=PhyConfig(bandwidth_mhz=self.bandwidth_mhz),
+            mac=self.mac,
+            channel=ChannelConfig(fixed_mcs=mcs, q0=1.0),
+            traffic=TrafficConfig(capture=capture),
+        )
+
+
+def _trace(config: WifiConfig, n: int, periods: int) -> Trace:
+    """Every station's frames over ``periods`` periods at the cell's fixed MCS, none lost."""
+    tick_us = config.mac.tick_us
+    period = config.traffic.period_ticks(tick_us)
+    offsets = config.traffic.offsets_ticks(n, tick_us)
+    horizon = (periods + 1) * period
+    mcs = config.channel.fixed_mcs or 0
+    bpss = float(config.phy.bits_per_subcarrier_symbol(mcs))
+    ul_bits = config.mac.psdu_bits(config.traffic.ul_frame_bytes)
+    dl_bits = config.mac.psdu_bits(config.traffic.dl_frame_bytes)
+    rows = [
+        (i, t, int(t * period + offsets[i]), int((t + 1) * period + offsets[i]), ul_bits, dl_bits)
+        for t in range(periods)
+        for i in range(n)
+    ]
+    frames = pd.DataFrame(rows, columns=list(Trace.COLUMNS[:6])).assign(ul_ok=1, dl_ok=1)
+    full = np.full((n, horizon), bpss)
+    return Trace(config, horizon, full, full.copy(), frames)
+
+
+def ours_delivered_fraction(
+    config: WifiConfig, n: int, *, scheduler: str, periods: int, skip_periods: int
+) -> float:
+    """Delivered fraction of our cell with ``n`` stations (frames after ``skip_periods``)."""
+    result = replay(_trace(config, n, periods + skip_periods), scheduler)
+    fates = result.frames
+    counted = fates[fates["step"] >= skip_periods]
+    return float((counted["fate"] == "delivered").mean())
+
+
+def capacity(
+    fraction: Callable[[int], float],
+    max_stations: int,
+    target: float = CROSSCHECK_TARGET,
+    *,
+    guess: int | None = None,
+    step: float = 2.0,
+) -> tuple[int, dict[int, float]]:
+    """Largest ``N`` in ``[0, max_stations]`` with ``fraction(N) >= target``.
+
+    Assumes the fraction falls with ``N`` (more stations share the channel): brackets the
+    capacity from ``guess`` (multiplying or dividing by ``step``), then bisects. Returns the
+    capacity and every fraction evaluated.
+    """
+    seen: dict[int, float] = {}
+
+    def ok(n: int) -> bool:
+        if n not in seen:
+            seen[n] = fraction(n)
+        return seen[n] >= target
+
+    lo, hi = 0, max_stations + 1  # ok(lo) holds (no stations), ok(hi) is taken to fail
+    if guess is not None and 1 <= guess <= max_stations:
+        probe = guess
+        if ok(probe):
+            lo = probe
+            while lo < max_stations:
+                probe = min(max_stations, max(lo + 1, math.ceil(step * lo)))
+                if not ok(probe):
+                    hi = probe
+                    break
+                lo = probe
+        else:
+            hi = probe
+            while hi > 1:
+                probe = min(hi - 1, math.floor(hi / step))
+                if ok(probe):
+                    lo = probe
+                    break
+                hi = probe
+    while hi - lo > 1:
+        mid = (lo + hi) // 2
+        if ok(mid):
+            lo = mid
+        else:
+            hi = mid
+    return lo, seen
+
+
+def _ours_fraction(
+    cfg: CrosscheckConfig, cell: WifiConfig, scheduler: str
+) -> Callable[[int], float]:
+    def fraction(n: int) -> float:
+        return ours_delivered_fraction(
+            cell, n, scheduler=scheduler, periods=cfg.periods, skip_periods=cfg.skip_periods
+        )
+
+    return fraction
+
+
+def _ns3_fraction(
+    cfg: CrosscheckConfig,
+    mcs: int,
+    capture: str,
+    access: str,
+    known: dict[int, float],
+    progress: Callable[[str], None] | None = None,
+) -> Callable[[int], float]:
+    from codesign_mb.wifi.ns3_driver import Ns3Scenario, run_ns3
+
+    def fraction(n: int) -> float:
+        if n in known:
+            return known[n]
+        if progress is not None:
+            progress(f"  ns-3 {access}, MCS {mcs}, {capture}, {n} stations ...")
+        scenario = Ns3Scenario(
+            n_stations=n,
+            mcs=mcs,
+            access=access,
+            bandwidth_mhz=cfg.bandwidth_mhz,
+            guard_interval_us=0.8 if access == "su" else 1.6,
+            capture=capture,
+            frames=cfg.periods,
+            skip_frames=cfg.skip_periods,
+            mu_stations=cfg.mu_stations,
+        )
+        return run_ns3(scenario).delivered_fraction
+
+    return fraction
+
+
+def crosscheck(
+    cfg: CrosscheckConfig,
+    *,
+    progress: Callable[[str], None] | None = None,
+    ns3_known: list[dict[str, Any]] | None = None,
+    on_row: Callable[[list[dict[str, Any]]], None] | None = None,
+) -> list[dict[str, Any]]:
+    """One row per (MCS, capture): our capacity and ns-3's, per scheme, and the relative gap.
+
+    ``ns3_known``: rows of an earlier cross-check (same ns-3 settings) whose ns-3 delivered
+    fractions are reused instead of simulated again; ``on_row`` gets the rows so far after
+    each (to save partial results).
+    """
+    rows: list[dict[str, Any]] = []
+    earlier = {(r["mcs"], r["capture"]): r for r in ns3_known or []}
+    for mcs in cfg.mcs:
+        for capture in cfg.captures:
+            cell = cfg.cell(mcs, capture)
+            row: dict[str, Any] = {"mcs": mcs, "capture": capture}
+            guess = None
+            for name in cfg.schedulers:
+                cap, seen = capacity(_ours_fraction(cfg, cell, name), cfg.max_stations)
+                row[f"ours_{name}"] = cap
+                guess = max(guess or 1, cap)
+                row[f"ours_{name}_fractions"] = {
+                    str(k): round(v, 4) for k, v in sorted(seen.items())
+                }
+            for access in cfg.ns3_access:
+                if progress:
+                    progress(f"ns-3 {access}, MCS {mcs}, {capture}")
+                old = earlier.get((mcs, capture), {}).get(f"ns3_{access}_fractions", {})
+                known = {int(n): float(v) for n, v in old.items()}
+                fraction = _ns3_fraction(cfg, mcs, capture, access, known, progress)
+                cap, seen = capacity(fraction, cfg.max_stations, guess=guess, step=1.25)
+                row[f"ns3_{access}"] = cap
+                row[f"ns3_{access}_fractions"] = {
+                    str(k): round(v, 4) for k, v in sorted(seen.items())
+                }
+            ours = max(row[f"ours_{s}"] for s in cfg.schedulers)
+            best = max(row[f"ns3_{a}"] for a in cfg.ns3_access) if cfg.ns3_access else 0
+            row["ours_best"], row["ns3_best"] = ours, best
+            row["gap"] = round((ours - best) / best, 4) if best else None
+            row["within_tolerance"] = best > 0 and abs(ours - best) <= cfg.tolerance * best
+            rows.append(row)
+            if on_row is not None:
+                on_row(rows)
+    return rows
+
+
+def assumptions(cfg: CrosscheckConfig) -> dict[str, str]:
+    """What each side models, for the report next to the table."""
+    out = {
+        "ours": OURS_ASSUMPTIONS.replace(
+            "every 5 ticks", f"every {cfg.mac.bsrp_interval_ticks} ticks"
+        )
+    }
+    for access in cfg.ns3_access:
+        out[f"ns3_{access}"] = NS3_ASSUMPTIONS[access].replace(
+            "`mu_stations`", str(cfg.mu_stations)
+        )
+    return out
+
+
+def with_mac(cfg: CrosscheckConfig, **changes: Any) -> CrosscheckConfig:
+    """The same grid with MAC settings changed (e.g. the BSRP interval)."""
+    return replace(cfg, mac=replace(cfg.mac, **changes))

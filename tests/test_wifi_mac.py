@@ -1,0 +1,174 @@
+"""802.11ax MAC in the slot simulator: BSR-only queue knowledge, one DL MU PPDU, and the ns-3
+cross-check (ours fast; ns-3 itself slow and optional)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from codesign_mb.wifi.allocators import GreedyEdfAllocator
+from codesign_mb.wifi.config import WifiConfig
+from codesign_mb.wifi.crosscheck import CrosscheckConfig, capacity, ours_delivered_fraction
+from codesign_mb.wifi.engine import ChannelEngine, Frame
+from codesign_mb.wifi.mac import MacTiming
+from codesign_mb.wifi.ns3_driver import Ns3Scenario, ns3_available
+
+CELL = WifiConfig()
+
+
+def _engine(n: int, config: WifiConfig = CELL) -> ChannelEngine:
+    return ChannelEngine(config, n, GreedyEdfAllocator(40), GreedyEdfAllocator(40))
+
+
+def test_ap_sees_a_camera_frame_only_after_a_bsr():
+    engine = _engine(1)
+    engine.layouts = []
+    engine.run_tick(np.ones(1), np.ones(1))  # tick 0: beacon, poll of an empty queue
+    frame = Frame(0, 0, 1, 40, 10_000, 848)
+    engine.add(frame)
+    for _ in range(1, 5):  # ticks 1-4: the AP believes the queue empty, no poll is due
+        engine.run_tick(np.ones(1), np.ones(1))
+        assert frame.ul_left == frame.ul_bits
+    engine.run_tick(np.ones(1), np.ones(1))  # tick 5: BSRP poll, then the basic Trigger
+    assert frame.ul_left < frame.ul_bits
+    mac, phy = CELL.mac, CELL.phy
+    bsrp = mac.bsrp_exchange_us(1, mac.data_symbols(38, 468, 1.0), phy)
+    n_sym = mac.ul_data_symbols(1, bsrp, phy)
+    (tick, direction, layout) = engine.layouts[-1]
+    assert (tick, direction) == (5, "ul")
+    sd = engine.plan.units[int(layout[0])].data_subcarriers
+    # SERVICE + tail bits, and a dynamic fragment: one more MAC header, FCS and delimiter
+    assert frame.ul_bits - frame.ul_left == pytest.approx(sd * n_sym - 22 - 8 * 38)
+
+
+def test_a_station_with_data_reports_new_frames_without_a_poll():
+    engine = _engine(1)
+    first = Frame(0, 0, 0, 40, 60_000, 848)  # longer than one tick
+    engine.add(first)
+    engine.run_tick(np.ones(1), np.ones(1))  # polled at tick 0, served, BSR with its data
+    second = Frame(0, 1, 1, 41, 1_000, 848)
+    engine.add(second)
+    engine.run_tick(np.ones(1), np.ones(1))  # tick 1 (no poll): its BSR of tick 0 is old
+    before = second.ul_left
+    for _ in range(38):
+        if first.ul_left <= 0 or first.fate != "queued":
+            break
+        engine.run_tick(np.ones(1), np.ones(1))
+    assert first.ul_left <= 0
+    # the BSR sent with tick-1 data reported the second frame: it is served without a poll
+    engine.run_tick(np.ones(1), np.ones(1))
+    assert before == second.ul_bits and second.ul_left < second.ul_bits
+    assert engine.tick % CELL.mac.bsrp_interval_ticks != 0 or engine.tick > 5
+
+
+def test_one_dl_mu_ppdu_carries_every_ready_state_frame():
+    mac, phy = CELL.mac, CELL.phy
+    engine = _engine(3)
+    for i in range(3):
+        f = Frame(i, 0, 0, 2, 8, mac.psdu_bits(32))  # due next tick: served in full now
+        f.ul_left = 0.0
+        f.dl_ready_tick = 1
+        engine.dl_q[i].append(f)
+    engine.tick = 1  # no beacon, no poll
+    engine.run_tick(np.full(3, 5.0), np.full(3, 5.0))  # MCS 7: 5 bits per subcarrier-symbol
+    assert all(not q for q in engine.dl_q)
+    # 3 users -> 106-tone RUs (102 SD): ceil((22 + 8 * 106) / 510) = 2 symbols, ack 1 symbol
+    n_sym = math.ceil((22 + 8 * 106) / (102 * 5.0))
+    ack = math.ceil((22 + 8 * 36) / (102 * 5.0))
+    expected = mac.channel_access_us + mac.dl_exchange_us(3, n_sym, ack, phy)
+    assert engine.busy_us == pytest.approx(expected)
+
+
+def test_bsrp_interval_trades_airtime_for_delay():
+    # polling every tick costs capacity against polling every 5 ticks (staggered, MCS 7)
+    base = CrosscheckConfig()
+    every_tick = WifiConfig(
+        phy=CELL.phy,
+        mac=MacTiming(bsrp_interval_ticks=1),
+        channel=base.cell(7, "staggered").channel,
+    )
+    n = 30
+    slow = ours_delivered_fraction(
+        base.cell(7, "staggered"), n, scheduler="greedy", periods=4, skip_periods=1
+    )
+    fast = ours_delivered_fraction(every_tick, n, scheduler="greedy", periods=4, skip_periods=1)
+    assert slow >= fast
+
+
+def test_capacity_search_finds_the_threshold():
+    for true_cap in (0, 1, 7, 33, 64):
+        f = lambda n, c=true_cap: 1.0 if n <= c else 0.5  # noqa: E731
+        for guess in (None, 1, 10, 64):
+            cap, seen = capacity(f, 64, guess=guess)
+            assert cap == true_cap
+            assert len(seen) <= 16
+
+
+def test_our_capacity_falls_with_the_mcs():
+    cfg = CrosscheckConfig(periods=3, skip_periods=1)
+    caps = []
+    for mcs in (0, 3, 7):
+        cell = cfg.cell(mcs, "staggered")
+        cap, _ = capacity(
+            lambda n, cell=cell: ours_delivered_fraction(
+                cell, n, scheduler="greedy", periods=3, skip_periods=1
+            ),
+            64,
+        )
+        caps.append(cap)
+    # airtime per frame ~ 1 / rate: MCS 0 (0.5 bit/sc) ... MCS 7 (5 bits/sc)
+    assert caps[0] < caps[1] < caps[2]
+    assert 2 <= caps[0] <= 6 and caps[2] >= 20
+
+
+def test_ns3_scenario_traffic():
+    s = Ns3Scenario(n_stations=4, mcs=7)
+    assert s.datagram_sizes() == [1472] * 9 + [252]
+    assert s.offsets_ns() == [0, 10_000_000, 20_000_000, 30_000_000]
+    with pytest.raises(ValueError, match="guard_interval_us"):
+        Ns3Scenario(n_stations=2, mcs=7, access="ofdma", guard_interval_us=0.8)
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not ns3_available(), reason="ns-3 (optional extra [ns3]) not installed")
+def test_ns3_delivered_fraction_falls_with_load():
+    from codesign_mb.wifi.ns3_driver import run_ns3
+
+    light = run_ns3(Ns3Scenario(n_stations=2, mcs=3, access="su", frames=4, guard_interval_us=0.8))
+    heavy = run_ns3(Ns3Scenario(n_stations=30, mcs=3, access="su", frames=4, guard_interval_us=0.8))
+    assert light.delivered_fraction == 1.0
+    assert heavy.delivered_fraction < 0.95
+    # a frame's latency is at least its airtime: 13,500 B at MCS 3 on 40 MHz (~ 2 ms)
+    assert np.nanmin(light.latency_ms) > 8 * 13_500 / 103.2e3
+
+
+def test_crosscheck_cli_ours_only(runner):
+    import json
+
+    from codesign_mb.cli import app
+
+    args = ["wifi", "crosscheck", "--mcs", "3", "--captures", "staggered", "--ns3", "none"]
+    args += ["--periods", "2", "--max-stations", "20", "--json"]
+    result = runner.invoke(app, args)
+    assert result.exit_code == 0, result.output
+    row = json.loads(result.stdout)["rows"][0]
+    assert row["ours_best"] == max(row["ours_greedy"], row["ours_convex"])
+    fractions = row["ours_greedy_fractions"]
+    assert fractions[str(row["ours_greedy"])] >= 0.95
+    if str(row["ours_greedy"] + 1) in fractions:
+        assert fractions[str(row["ours_greedy"] + 1)] < 0.95
+
+
+def test_phy_table_uplink_gi(runner):
+    import json
+
+    from codesign_mb.cli import app
+
+    result = runner.invoke(app, ["wifi", "phy-table", "--ul-gi", "3.2", "--json"])
+    assert result.exit_code == 0, result.output
+    row = next(r for r in json.loads(result.stdout) if (r["ru_tones"], r["mcs"]) == (484, 11))
+    assert row["ul_rate_mbps"] == pytest.approx(468 * 10 * 5 / 6 / 16.0, abs=1e-3)
+    bad = runner.invoke(app, ["wifi", "phy-table", "--ul-gi", "0.8"])
+    assert bad.exit_code == 2 and "ul_guard_interval_us" in bad.output
