@@ -149,30 +149,35 @@ class StageAConfig:
     estimator: ComponentSpec = field(default_factory=lambda: ComponentSpec("predictor"))
     sac: SacSpec = field(
         default_factory=lambda: SacSpec(
-            gamma=0.97, tau=0.005, ent_coef="auto_0.01", learning_starts=0, gradient_steps=2
+            gamma=0.97,
+            tau=0.005,
+            ent_coef="auto_0.01",
+            learning_rate=1e-4,
+            learning_starts=0,
+            gradient_steps=1,
         )
     )
     layer_norm_critics: bool = True
     target_entropy: float | None = -8.0
-    total_steps: int = 100_000
+    total_steps: int = 60_000
     chunk_steps: int = 5_000
     seed: int = 0
     eval_episodes: int = 50
     demo: ComponentSpec | None = field(default_factory=lambda: ComponentSpec("scripted"))
-    demo_episodes: int = 100
+    demo_episodes: int = 200
     demo_noise_std: float = 0.1
     demo_random_prob: float = 0.0
     demo_fraction: float = 0.5
     bc_epochs: int = 50
     bc_action_std: float = 0.2
-    bc_weight: float = 0.4
-    bc_decay_steps: int = 50_000
+    bc_weight: float = 10.0
+    bc_decay_steps: int = 100_000
     critic_warmup_steps: int = 2_000
     curriculum: tuple[float, ...] = (0.35,)
     shaping_weight: float = 5.0
     grip_penalty: float = 1.0
     grip_radius_m: float = 0.04
-    final_eval_episodes: int = 100
+    final_eval_episodes: int = 200
 
     def __post_init__(self) -> None:
         require_at_least(self, 1, "total_steps", "chunk_steps", cap=TRAINING_STEPS_CAP)
