@@ -133,8 +133,9 @@ class StageAConfig:
     critic_warmup_steps:
         SAC gradient steps on the demonstrations with the actor frozen, before learning.
     curriculum:
-        Top belt speeds (m/s) trained on before the plant's own, each for an equal share of
-        ``total_steps`` (:func:`~codesign_mb.stages.stage_a_aids.plant_at_speed`).
+        Top belt speeds (m/s) of SAC's own episodes before the plant's own, each for an
+        equal share of ``total_steps`` (:func:`~codesign_mb.stages.stage_a_aids.plant_at_speed`);
+        the demonstrations cover the plant's own speeds.
     shaping_weight:
         Potential-based shaping (Ng et al. 1999) added to the plant's reward,
         ``w (d_t - gamma d_{t+1})`` with ``d`` the gripper-object distance in m. 0: off.
@@ -266,12 +267,12 @@ def train_stage_a(
     launched = time.perf_counter()
     schedule = curriculum_schedule(config.plant, config.curriculum, config.total_steps)
     env = _shaped(config, EstimatedStateEnv(config.plant, config.estimator))
-    if schedule:
-        env.get_wrapper_attr("set_top_speed")(speed_at(schedule, 0))
     state = load_state(work_dir) if resume else None
     model = resume_sac(work_dir, env) if state is not None else None
-    if model is None:
+    if model is None:  # demonstrations on the plant's own belt speeds, all of them
         model, state = _start(config, env, work_dir)
+    if schedule:  # SAC's own episodes: where the curriculum is (resumed: where it was)
+        env.get_wrapper_attr("set_top_speed")(speed_at(schedule, int(model.num_timesteps)))
     assert state is not None
     state.total_steps = config.total_steps
     bc_term = _bc_term(config, model, work_dir)
