@@ -160,7 +160,7 @@ class StageAConfig:
     )
     layer_norm_critics: bool = True
     target_entropy: float | None = -8.0
-    total_steps: int = 60_000
+    total_steps: int = 20_000
     chunk_steps: int = 5_000
     seed: int = 0
     eval_episodes: int = 50
