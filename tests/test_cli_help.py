@@ -139,7 +139,7 @@ def test_train_steps_is_the_budget_of_stage_a_warm_up_too() -> None:
 
     default = StageAConfig()
     cfg = stage_config("a", None, assignments=[], seed=None, steps=300, estimator=None)
-    assert (cfg.total_steps, cfg.critic_warmup_steps, cfg.actor_freeze_steps) == (300, 300, 300)
+    assert (cfg.total_steps, cfg.critic_warmup_steps) == (300, 300)
     cfg = stage_config(
         "a", None, assignments=["critic_warmup_steps=7"], seed=None, steps=300, estimator=None
     )

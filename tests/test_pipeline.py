@@ -84,7 +84,8 @@ def pipeline(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
             demo_episodes=2,
             bc_epochs=2,
             critic_warmup_steps=20,
-            actor_freeze_steps=50,
+            estimator=ComponentSpec("none"),
+            curriculum=(),
             final_eval_episodes=1,
         ),
         out_dir=out["a"],
@@ -164,7 +165,9 @@ def test_stage_a_resume_continues_the_step_count(pipeline: dict[str, Path], tmp_
         demo_episodes=0,
         bc_epochs=0,
         critic_warmup_steps=0,
-        actor_freeze_steps=0,
+        bc_weight=0.0,
+        estimator=ComponentSpec("none"),
+        curriculum=(),
         final_eval_episodes=1,
     )
     result = train_stage_a(config, out_dir=tmp_path / "out", work_dir=work, resume=True)

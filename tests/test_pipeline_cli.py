@@ -20,7 +20,10 @@ final_eval_episodes = 1
 demo_episodes = 1
 bc_epochs = 2
 critic_warmup_steps = 20
-actor_freeze_steps = 0
+curriculum = []
+
+[a.estimator]
+kind = "none"
 
 [a.plant]
 name = "toy"

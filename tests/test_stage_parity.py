@@ -233,9 +233,10 @@ def test_add_demonstrations_equals_the_former_loop() -> None:
     for fill in (_old_add_demonstrations, add_demonstrations):
         env = shaped()
         model = make_sac(env, TINY_SAC, seed=0)
+        target = model.replay_buffer if fill is add_demonstrations else model  # a buffer now
         outputs.append(
             fill(
-                model, env, ToyPickController(), episodes=3, noise_std=0.1, seed=2, random_prob=0.2
+                target, env, ToyPickController(), episodes=3, noise_std=0.1, seed=2, random_prob=0.2
             )
         )
         models.append(model)

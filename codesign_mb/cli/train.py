@@ -3,7 +3,7 @@
 =====  ==========================================================  ===========================
 stage  what                                                        default output (``runs/``)
 =====  ==========================================================  ===========================
-a      SAC ideal controller on the perfect state                   checkpoints/stage_a
+a      SAC ideal controller (from demonstrations, oracle link)    checkpoints/stage_a
 b      MLP + LSTM estimators under the delay distribution          checkpoints/stage_b
 c      SAC QoS policy for a controller/estimator pair              checkpoints/stage_c_<estimator>
 d      synthesis: estimator under the learned QoS, QoS re-trained  checkpoints/stage_d
@@ -129,8 +129,7 @@ def stage_config(
             overrides["estimator.checkpoint"] = None
     cfg: Any = load_config(_config_class(stage), config_file, {}, section=stage)
     if stage == "a" and steps is not None:  # the warm-up's SAC updates count against --steps
-        for key in ("critic_warmup_steps", "actor_freeze_steps"):
-            overrides.setdefault(key, min(getattr(cfg, key), steps))
+        overrides.setdefault("critic_warmup_steps", min(cfg.critic_warmup_steps, steps))
     return _apply(cfg, overrides) if overrides else cfg
 
 

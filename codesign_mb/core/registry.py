@@ -10,7 +10,9 @@ process calls on its own plant.
 ========== ================== ==========================================================
 role       kind               what
 ========== ================== ==========================================================
-controller ``sac``            ``control.sac.SacController`` from ``checkpoint``
+controller ``sac``            ``control.sac.SacController``: a SAC-trained actor (``checkpoint``)
+controller ``bc``             ``control.sac.SacController``: a behaviour-cloned actor (stage A's
+                              ``bc.zip``, the clone SAC starts from)
 controller ``mpc``            ``control.mpc.MpcController`` (``options``: its kwargs)
 controller ``scripted``       ``control.scripted.ScriptedPickController``
 controller ``toy_pick``       ``control.scripted.ToyPickController`` (toy plant only)
@@ -126,6 +128,7 @@ class Kind:
 KINDS: dict[str, dict[str, Kind]] = {
     "controller": {
         "sac": Kind("codesign_mb.control.sac:SacController.load", checkpoint_keyword="path"),
+        "bc": Kind("codesign_mb.control.sac:SacController.load", checkpoint_keyword="path"),
         "mpc": Kind("codesign_mb.control.mpc:MpcController.from_env", takes_env=True),
         "scripted": Kind(
             "codesign_mb.control.scripted:ScriptedPickController.from_env", takes_env=True
@@ -205,7 +208,7 @@ class ComponentSpec:
     kind:
         A key of the role's table (see the module docstring).
     checkpoint:
-        File or folder of a learned component (required for ``sac``, ``mlp``, ``lstm``,
+        File or folder of a learned component (required for ``sac``, ``bc``, ``mlp``, ``lstm``,
         ``learned``).
     options:
         Keyword arguments of the component's factory (e.g. ``{"reliability": 1.0}`` for

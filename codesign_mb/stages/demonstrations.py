@@ -1,9 +1,10 @@
-"""Stage A's start from demonstrations: replay buffer, behaviour cloning, critic warm-up.
+"""Stage A's start from demonstrations: their replay buffer, behaviour cloning, critic warm-up.
 
-Demonstrations run through THE closed loop (:class:`~codesign_mb.rollout.ClosedLoop`) with
-ideal control (``estimator=None``) behind a perfect link (``q = 1``, ``tau = 0``), so the
-demonstrator acts on the plant's own observation: a :class:`NoisyController` perturbs its
-actions, a :class:`ReplayBufferWriter` observer puts every transition into SAC's replay buffer.
+Demonstrations run in stage A's training env (the plant behind the perfect link, seen through
+the stack's estimator: :class:`~codesign_mb.stages.stage_a_aids.EstimatedStateEnv`), so the
+demonstrator acts on exactly the actor's input; a :class:`NoisyController` perturbs its
+actions and every transition goes into an SB3 replay buffer (stage A's demonstration buffer,
+from which half of each SAC batch is drawn).
 """
 
 from __future__ import annotations
@@ -14,16 +15,11 @@ import gymnasium as gym
 import numpy as np
 from numpy.typing import NDArray
 
-from codesign_mb.adaptation.base import StaticQos
 from codesign_mb.control.base import Controller
-from codesign_mb.network.link import BernoulliLink
-from codesign_mb.network.wrapper import LinkObservationWrapper
-from codesign_mb.rollout.loop import ClosedLoop, Transition
 from codesign_mb.stages.training import stage_seeds
 
 __all__ = [
     "NoisyController",
-    "ReplayBufferWriter",
     "add_demonstrations",
     "clone_behaviour",
     "warm_up_critic",
@@ -72,41 +68,8 @@ class NoisyController:
         return action
 
 
-class ReplayBufferWriter:
-    """A :class:`~codesign_mb.rollout.loop.Transition` observer filling SB3's replay buffer.
-
-    Under ideal control the state the controller is given is the plant's observation; the next
-    one is rebuilt the same way (the networked observation with the true remote state).
-    Transitions are stored as SB3 stores its own: a time-limit end is a truncation, not a
-    terminal state. Counts :attr:`steps` and whether the episode succeeded.
-    """
-
-    def __init__(self, model: Any, remote: slice) -> None:
-        self.model = model
-        self.remote = remote
-        self.steps = 0
-        self.success = False
-
-    def start_episode(self, info: dict[str, Any]) -> None:
-        self.success = bool(info.get("success", False))
-
-    def __call__(self, step: Transition) -> None:
-        next_obs = np.array(step.next_observation[:-1], dtype=float)
-        next_obs[self.remote] = step.info["remote_true"]
-        self.model.replay_buffer.add(
-            np.asarray(step.state)[None],
-            next_obs[None],
-            self.model.policy.scale_action(step.action)[None],
-            np.array([step.reward]),
-            np.array([step.terminated or step.truncated]),
-            [{"TimeLimit.truncated": bool(step.truncated and not step.terminated)}],
-        )
-        self.steps += 1
-        self.success = self.success or bool(step.info.get("success", False))
-
-
 def add_demonstrations(
-    model: Any,
+    buffer: Any,
     env: gym.Env,
     controller: Controller,
     *,
@@ -115,16 +78,19 @@ def add_demonstrations(
     seed: int,
     random_prob: float = 0.0,
 ) -> tuple[dict[str, float], tuple[np.ndarray, np.ndarray]]:
-    """Put ``episodes`` of ``controller`` (with action noise) into ``model``'s replay buffer.
+    """Put ``episodes`` of ``controller`` (with action noise) into the SB3 replay ``buffer``.
 
-    ``env`` is the training plant (perfect state; its reward is what SAC learns). With
-    probability ``random_prob`` a step's action is uniformly random. Returns the
-    demonstrations' success rate and number of transitions, and the noise-free
-    ``(observations, actions)`` of the demonstrator (for behaviour cloning).
+    ``env`` is the training env (stage A: the plant behind the perfect link seen through
+    the estimator, with the shaped reward), so the demonstrator acts on the actor's input
+    and its transitions carry the reward SAC learns. Transitions are stored as SB3 stores
+    its own (actions scaled to [-1, 1]; a time-limit end is a truncation, not a terminal
+    state). With probability
+    ``random_prob`` a step's action is uniformly random. Returns the demonstrations'
+    success rate and number of transitions, and the noise-free ``(observations, actions)``
+    of the demonstrator (for behaviour cloning).
     """
     if not isinstance(env.action_space, gym.spaces.Box):
         raise TypeError("demonstrations need a Box action space")
-    perfect = LinkObservationWrapper(env, BernoulliLink(), StaticQos(1.0, 0))
     noisy = NoisyController(
         controller,
         env.action_space,
@@ -132,17 +98,30 @@ def add_demonstrations(
         rng=np.random.default_rng(seed),
         random_prob=random_prob,
     )
-    writer = ReplayBufferWriter(model, perfect.remote_slice)
-    loop = ClosedLoop(perfect, None, noisy, observer=writer, record=False)
-    successes = []
+    low, high = env.action_space.low, env.action_space.high
+    successes, steps = [], 0
     for s in stage_seeds(seed, episodes):
-        writer.start_episode(loop.reset(seed=s))
-        while not loop.done:
-            loop.step()
-        successes.append(writer.success)
+        obs, info = env.reset(seed=s)
+        noisy.reset(seed=s)
+        success, done = False, False
+        while not done:
+            action = noisy.act(np.asarray(obs, dtype=float))
+            next_obs, reward, terminated, truncated, info = env.step(action)
+            done = bool(terminated or truncated)
+            buffer.add(
+                np.asarray(obs)[None],
+                np.asarray(next_obs)[None],
+                (2.0 * ((action - low) / (high - low)) - 1.0)[None],  # SB3's scale_action
+                np.array([reward]),
+                np.array([done]),
+                [{"TimeLimit.truncated": bool(truncated and not terminated)}],
+            )
+            obs, steps = next_obs, steps + 1
+            success = success or bool(info.get("success", False))
+        successes.append(success)
     stats = {
         "demo_success_rate": float(np.mean(successes)) if episodes else 0.0,
-        "demo_steps": writer.steps,
+        "demo_steps": steps,
     }
     return stats, (np.asarray(noisy.clean_observations), np.asarray(noisy.clean_actions))
 

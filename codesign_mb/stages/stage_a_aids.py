@@ -1,9 +1,10 @@
-"""Stage A's training aids around SB3's SAC: reward shaping, belt-speed curriculum, actor pacing.
+"""Stage A's training aids around SB3's SAC: the actor's input, shaping, belt-speed curriculum.
 
-Plain SB3 usage (gymnasium wrappers and callbacks), no RL algorithm: the shaped reward and
-the early-grip penalty (:class:`Shaping`), the curriculum over belt speeds
-(:class:`SpeedSwitch` + :class:`Curriculum`), critic-only updates for a while
-(:class:`FreezeActor`) and a smaller actor learning rate (:func:`scale_actor_learning_rate`).
+Plain SB3/gymnasium usage, no RL algorithm: the training env the actor acts in, the plant
+behind a perfect link with the stack's estimator (:class:`EstimatedStateEnv`, the ``oracle``
+link of the tables: what the robot knows with every packet delivered fresh), the shaped reward
+and the early-grip penalty (:class:`Shaping`), and the curriculum over belt speeds
+(:func:`curriculum_schedule` + :class:`Curriculum`).
 """
 
 from __future__ import annotations
@@ -15,16 +16,17 @@ import gymnasium as gym
 import numpy as np
 from stable_baselines3.common.callbacks import BaseCallback
 
-from codesign_mb.core.registry import PlantSpec, make_plant
+from codesign_mb.adaptation.base import StaticQos
+from codesign_mb.core.registry import ComponentSpec, PlantSpec, build, make_plant
+from codesign_mb.network.link import BernoulliLink
+from codesign_mb.network.wrapper import LinkObservationWrapper
 
 __all__ = [
     "Curriculum",
-    "FreezeActor",
+    "EstimatedStateEnv",
     "Shaping",
-    "SpeedSwitch",
     "curriculum_schedule",
     "plant_at_speed",
-    "scale_actor_learning_rate",
     "speed_at",
 ]
 
@@ -32,13 +34,15 @@ __all__ = [
 def curriculum_schedule(
     plant: PlantSpec, speeds: tuple[float, ...], total_steps: int
 ) -> list[tuple[int, float]]:
-    """``(start step, belt speed)`` pairs: ``speeds`` then the plant's own, equal shares.
+    """``(start step, top belt speed)`` pairs: ``speeds`` then the plant's own, equal shares.
 
-    Empty without ``speeds``; ``ValueError`` when the plant sets no ``belt_speed_mps``.
+    The plant's own is the top of its ``belt_speed_range_mps`` or its ``belt_speed_mps``.
+    Empty without ``speeds``; ``ValueError`` when the plant sets neither.
     """
     if not speeds:
         return []
-    final_speed = plant.options.get("belt_speed_mps")
+    speed_range = plant.options.get("belt_speed_range_mps") or ()
+    final_speed = speed_range[-1] if speed_range else plant.options.get("belt_speed_mps")
     if final_speed is None:
         raise ValueError("a curriculum needs plant.options.belt_speed_mps (the final speed)")
     steps = [*speeds, float(final_speed)]
@@ -56,7 +60,17 @@ def speed_at(schedule: list[tuple[int, float]], steps: int) -> float:
 
 
 def plant_at_speed(plant: PlantSpec, speed: float) -> PlantSpec:
-    """``plant`` with its ``belt_speed_mps`` option set to ``speed`` (m/s)."""
+    """``plant`` with belt speeds up to ``speed`` (m/s).
+
+    A plant that draws its speed per episode (``belt_speed_range_mps = (low, high)``) gets the
+    range ``(min(low, speed), min(high, speed))`` (its nominal speed, the robot's prior, is
+    kept); a plant with one speed gets ``belt_speed_mps = speed``.
+    """
+    speed_range = tuple(plant.options.get("belt_speed_range_mps", ()))
+    if speed_range:
+        low, high = float(speed_range[0]), float(speed_range[1])
+        options = {**plant.options, "belt_speed_range_mps": (min(low, speed), min(high, speed))}
+        return replace(plant, options=options)
     return replace(plant, options={**plant.options, "belt_speed_mps": float(speed)})
 
 
@@ -68,72 +82,62 @@ class Curriculum(BaseCallback):
         self.schedule = schedule
 
     def _on_step(self) -> bool:
-        self.training_env.env_method("set_belt_speed", speed_at(self.schedule, self.num_timesteps))
+        self.training_env.env_method("set_top_speed", speed_at(self.schedule, self.num_timesteps))
         return True
 
 
-class FreezeActor(BaseCallback):
-    """Keep SAC's actor frozen (critic-only updates) until ``until`` env steps."""
+class EstimatedStateEnv(gym.Env):
+    """The plant behind a perfect link (``q = 1``, ``tau = 0``) seen through an estimator.
 
-    def __init__(self, until: int) -> None:
-        super().__init__()
-        self.until = int(until)
-        self._frozen: bool | None = None
+    The observation is the estimator's output (the plant's ``state_layout``: with the
+    ``predictor`` on a plant that perceives no velocity, the estimated velocity appended), so
+    the actor is trained on what it is given at evaluation under the ``oracle`` link. The
+    reward, ``terminated``/``truncated`` and ``info`` are the plant's. :meth:`set_top_speed`
+    rebuilds the plant with belt speeds up to a value at the next reset (the curriculum).
+    """
 
-    def _set(self, frozen: bool) -> None:
-        if frozen != self._frozen:
-            for p in self.model.actor.parameters():
-                p.requires_grad_(not frozen)
-            self._frozen = frozen
-
-    def _on_training_start(self) -> None:
-        self._set(self.num_timesteps < self.until)
-
-    def _on_step(self) -> bool:
-        self._set(self.num_timesteps < self.until)
-        return True
-
-    def _on_training_end(self) -> None:
-        self._set(False)
-
-
-def scale_actor_learning_rate(model: Any, scale: float) -> None:
-    """Make SB3's per-update learning-rate setting give the actor ``scale`` times the rate."""
-    import types
-
-    from stable_baselines3.common.utils import update_learning_rate
-
-    if scale == 1.0:
-        return
-    base = model._update_learning_rate
-
-    def _update(self: Any, optimizers: Any) -> None:
-        base(optimizers)
-        rate = self.lr_schedule(self._current_progress_remaining) * scale
-        update_learning_rate(self.actor.optimizer, rate)
-
-    model._update_learning_rate = types.MethodType(_update, model)
-
-
-class SpeedSwitch(gym.Wrapper):
-    """Rebuild the plant with another belt speed at the next reset (for the curriculum)."""
-
-    def __init__(self, plant: PlantSpec) -> None:
-        super().__init__(make_plant(plant))
-        self._plant = plant
-        self._speed = plant.options.get("belt_speed_mps")
+    def __init__(self, plant: PlantSpec, estimator: ComponentSpec) -> None:
+        self._plant_spec, self._estimator_spec = plant, estimator
+        self._top: float | None = None
         self._pending: float | None = None
+        self._build(plant)
+        probe = self._estimator.reset(self._linked.reset(seed=0)[0])
+        low = np.full(len(probe), -10.0, dtype=np.float32)
+        self.observation_space = gym.spaces.Box(low, -low, dtype=np.float32)
+        self.action_space = self._linked.action_space
 
-    def set_belt_speed(self, speed: float) -> None:
-        if speed != self._speed:
-            self._pending = speed
+    def _build(self, plant: PlantSpec) -> None:
+        self.plant = make_plant(plant)
+        self._linked = LinkObservationWrapper(self.plant, BernoulliLink(), StaticQos(1.0, 0))
+        self._estimator = build("estimator", self._estimator_spec, self.plant)
 
-    def reset(self, **kwargs: Any) -> Any:
+    def set_top_speed(self, speed: float) -> None:
+        """Belt speeds up to ``speed`` (m/s) from the next episode on."""
+        if speed != self._top:
+            self._pending = float(speed)
+
+    def reset(
+        self, *, seed: int | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[np.ndarray, dict[str, Any]]:
+        super().reset(seed=seed)
         if self._pending is not None:
-            self.env.close()
-            self.env = make_plant(plant_at_speed(self._plant, self._pending))
-            self._speed, self._pending = self._pending, None
-        return self.env.reset(**kwargs)
+            self.plant.close()
+            self._build(plant_at_speed(self._plant_spec, self._pending))
+            self._top, self._pending = self._pending, None
+        obs, info = self._linked.reset(seed=seed, options=options)
+        return self._clip(self._estimator.reset(obs)), info
+
+    def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+        obs, reward, terminated, truncated, info = self._linked.step(action)
+        state = self._estimator.estimate(obs, np.asarray(action, dtype=float))
+        return self._clip(state), float(reward), terminated, truncated, info
+
+    def _clip(self, state: Any) -> np.ndarray:
+        space = self.observation_space
+        return np.clip(np.asarray(state, dtype=np.float32), space.low, space.high)
+
+    def close(self) -> None:
+        self.plant.close()
 
 
 class Shaping(gym.Wrapper):

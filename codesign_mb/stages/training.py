@@ -39,6 +39,7 @@ __all__ = [
     "Progress",
     "SacSpec",
     "TrainingState",
+    "git_commit",
     "load_state",
     "make_sac",
     "no_progress",
@@ -341,12 +342,33 @@ def write_output(
         "final_evaluation": dict(final or {}),
         "notes": notes,
         "package_version": package_version(),
+        "git_commit": git_commit(),
         "config": to_mapping(config),
         **state.extra,
     }
     write_json(out_dir / "training.json", portable_paths(meta, out_dir))
     write_json(out_dir / "curve.json", state.curve)
     return out_dir
+
+
+def git_commit() -> str | None:
+    """The source checkout's ``HEAD`` commit (``+dirty`` with uncommitted changes), or ``None``
+    outside a git checkout: what ``training.json`` records to say which code trained it."""
+    import subprocess
+
+    root = Path(__file__).resolve().parent
+    try:
+        head = subprocess.run(
+            ["git", "-C", str(root), "rev-parse", "HEAD"],
+            capture_output=True, text=True, check=True, timeout=10,
+        ).stdout.strip()  # fmt: skip
+        dirty = subprocess.run(
+            ["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no"],
+            capture_output=True, text=True, check=True, timeout=10,
+        ).stdout.strip()  # fmt: skip
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return f"{head}+dirty" if dirty else head
 
 
 @contextlib.contextmanager

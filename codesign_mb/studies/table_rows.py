@@ -304,7 +304,7 @@ PIPELINE_PLANTS: dict[str, tuple[str, ...]] = {
 benchmark's ``realistic`` scenario; the paper's Table I (``model-free``) at 0.2 m/s, the plant
 its shipped checkpoints were trained on (they cannot read the realistic packet)."""
 
-_LEARNED_CONTROLLERS = ("sac",)
+_LEARNED_CONTROLLERS = ("sac", "bc")
 _LEARNED_ESTIMATORS = ("mlp", "lstm")
 _MODEL_BASED = ("mpc", "predictor", "belt_imm", "scripted", "toy_pick")
 
