@@ -15,15 +15,15 @@
 #
 # Every robot sends a camera frame (13,500 bytes) up to the access point each control step
 # (40 ms) and gets a state frame (32 bytes) back; both must be through before the robot reads
-# its observation $\tau$ steps later (`eq_deadline`). The AP lays out OFDMA resource units
+# its observation $\tau$ steps later ([deadline]). The AP lays out OFDMA resource units
 # (RUs) every 1 ms tick. Three schedulers face the same traffic (`codesign_mb.wifi`):
 #
 # * **greedy** (the paper, sec. 5): stations in deadline order, each the smallest RU that
-#   finishes its frame in time if served every remaining tick (`eq_greedy`);
-# * **convex** (online): admission control (`eq_admit`: Moore-Hodgson on the channel seen
+#   finishes its frame in time if served every remaining tick ([greedy]);
+# * **convex** (online): admission control ([admit]: Moore-Hodgson on the channel seen
 #   as one machine, so the band goes to frames that can still make it), then a QP over
-#   fractional RU assignments (`eq_qp`) rounded to a valid layout (`eq_round`);
-# * **offline optimum**: the whole-horizon LP `eq_lp` over a recorded trace. With $U_{fk}$,
+#   fractional RU assignments ([qp]) rounded to a valid layout ([round]);
+# * **offline optimum**: the whole-horizon LP [lp] over a recorded trace. With $U_{fk}$,
 #   $V_{fk}$ the parts of frame $f$'s camera and state frames sent by tick $k$,
 #   $$\max \sum_f V_{f,\mathrm{last}} \quad \text{s.t.} \quad
 #   \sum_f \frac{B^{UL}_f (U_{fk} - U_{f,k-1})}{b_{ik}} \le S\,(N_{UL} - (N_{UL} - N'_{UL}) y_k),

@@ -1,8 +1,14 @@
 """WiFi 6 (802.11ax) OFDMA cell for N robots: PHY, MAC, channel, traffic, allocators, simulator.
 
-paper.tex sec. 5 and 6.1; see each module for the equations (``eq_rate``, ``eq_layout``,
-``eq_per``, ``eq_drop``, ``eq_deadline``, ``eq_greedy``, ``eq_admit``, ``eq_qp``, ``eq_round``,
-``eq_lp``).
+paper.tex sec. 5 (``sec_scheduling``, ``eq_drop``) and 6.1 (``sec_wifi``). The equations this
+package adds, which paper.tex does not number, are named in brackets and written out in the
+module that implements them: [rate] and [layout] (:mod:`~codesign_mb.wifi.phy`), [per] and
+[snr] (:mod:`~codesign_mb.wifi.channel`), [deadline] (:mod:`~codesign_mb.wifi.traffic`),
+[air_ul], [air_dl] and [serve] (:mod:`~codesign_mb.wifi.mac`, :mod:`~codesign_mb.wifi.engine`),
+[greedy] (the paper's greedy scheduler of ``sec_scheduling``, :mod:`~codesign_mb.wifi.allocators`),
+[admit] (:mod:`~codesign_mb.wifi.admission`), [qp] and [round]
+(:mod:`~codesign_mb.wifi.convex_qp`, :mod:`~codesign_mb.wifi.convex`), [lp]
+(:mod:`~codesign_mb.wifi.offline`). Labels of the form ``eq_*`` are paper.tex's own.
 """
 
 from codesign_mb.wifi.allocators import Allocator, GreedyEdfAllocator, TickDemand

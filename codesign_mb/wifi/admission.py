@@ -1,4 +1,4 @@
-"""Admission control of the convex allocator (``eq_admit``): which head frames can still make it.
+"""Admission control of the convex allocator ([admit]): which head frames can still make it.
 
 The channel is one machine that serves ``c`` full bands per tick (``c`` =
 :attr:`~codesign_mb.wifi.convex.ConvexAllocatorConfig.admission_capacity`); station ``i``'s
@@ -48,7 +48,7 @@ def admit_edf(
     slack_ticks: NDArray[np.float64] | list[float],
     weights: NDArray[np.float64] | list[float] | None = None,
 ) -> NDArray[np.bool_]:
-    """``eq_admit``: which jobs of a single machine to keep so that EDF meets every deadline.
+    """[admit]: which jobs of a single machine to keep so that EDF meets every deadline.
 
     Jobs are given in deadline order (``slack_ticks`` non-decreasing). With unit weights this
     is Moore-Hodgson's algorithm (the most jobs in time); with weights, the job rejected when
@@ -91,7 +91,7 @@ def must_serve(
     """Part of the current tick each job of a feasible EDF set needs (as-late-as-possible).
 
     ``work_ticks`` and ``slack_ticks`` in deadline order; returns the fraction of the machine
-    (of one tick) each job must get now, summing to at most 1 (``eq_admit``).
+    (of one tick) each job must get now, summing to at most 1 ([admit]).
 
     Examples
     --------

@@ -5,8 +5,8 @@ Interface
 An :class:`Allocator` gets a :class:`TickDemand` (per station: queued bits, the head-of-line
 frame's remaining bits and ticks to its deadline, and the bits one data subcarrier carries
 over this PPDU at the station's MCS) and returns one RU index per station (``-1`` = none).
-The layout must be valid: pairwise non-overlapping RUs (``eq_layout``), one per station. A
-station given RU ``r`` is served ``N_SD(r) * e_i`` bits (``eq_serve``). An allocator that
+The layout must be valid: pairwise non-overlapping RUs ([layout]), one per station. A
+station given RU ``r`` is served ``N_SD(r) * e_i`` bits ([serve]). An allocator that
 solves an optimisation problem and may fall back when its solver fails also satisfies
 :class:`ReportsFallbacks` (how many ticks fell back, and why the last one did).
 
@@ -15,15 +15,15 @@ Allocators
 :class:`GreedyEdfAllocator`
     The paper's two-stage heuristic (sec. 5): stations in deadline order, each given the
     smallest RU that finishes its head frame by its deadline if served every remaining tick
-    (``eq_greedy``); the largest free RU when none suffices; unused spectrum stays idle.
+    ([greedy]); the largest free RU when none suffices; unused spectrum stays idle.
 :class:`AdmissionGreedyAllocator`
-    The improved greedy: admission control (``eq_admit``), the paper's rule for the admitted
+    The improved greedy: admission control ([admit]), the paper's rule for the admitted
     frames, spectrum left over to the backlog in deadline order.
 :class:`~codesign_mb.wifi.convex.ConvexAllocator`
-    Admission control (``eq_admit``, RU-size-aware), then the per-tick QP relaxation
-    ``eq_qp`` (:mod:`codesign_mb.wifi.convex_qp`), rounded to a valid layout (``eq_round``).
+    Admission control ([admit], RU-size-aware), then the per-tick QP relaxation
+    [qp] (:mod:`codesign_mb.wifi.convex_qp`), rounded to a valid layout ([round]).
 :class:`~codesign_mb.wifi.tick_optimal.TickOptimalAllocator`
-    The same admission, then the exact per-tick optimum of the objective of ``eq_qp``
+    The same admission, then the exact per-tick optimum of the objective of [qp]
     (:mod:`codesign_mb.wifi.tick_dp`).
 
 All place RUs with :class:`RuPacker` (best fit in the free spectrum, memoised).
@@ -73,7 +73,7 @@ class TickDemand:
         ``e_i``: bits one data subcarrier carries over this PPDU's data symbols at the
         station's MCS (``N_BPSCS * R * N_SS * N_sym``).
     weights:
-        Value of each station's head frame for admission control (``eq_admit``); ``None``:
+        Value of each station's head frame for admission control ([admit]); ``None``:
         every frame is worth 1 (maximise the number of frames in time).
     """
 
@@ -117,12 +117,12 @@ class ReportsFallbacks(Protocol):
 
 
 def layout_is_valid(plan: RuPlan, layout: NDArray[np.int64]) -> bool:
-    """``eq_layout``: indices in range and pairwise non-overlapping RUs."""
+    """[layout]: indices in range and pairwise non-overlapping RUs."""
     return plan.is_valid_layout(layout)
 
 
 def served_bits(plan: RuPlan, layout: NDArray[np.int64], demand: TickDemand) -> NDArray:
-    """``eq_serve``: bits each station can send with its RU this tick (not capped by backlog)."""
+    """[serve]: bits each station can send with its RU this tick (not capped by backlog)."""
     sd = np.array([u.data_subcarriers for u in plan.units] + [0])
     return sd[np.asarray(layout)] * demand.bits_per_subcarrier
 
@@ -298,7 +298,7 @@ class RuPacker:
 
 @dataclass
 class GreedyEdfAllocator:
-    """The paper's QoS-aware greedy scheduler (sec. 5, step 2; ``eq_greedy``).
+    """The paper's QoS-aware greedy scheduler (sec. 5, step 2; [greedy]).
 
     Stations are taken in order of their head frame's deadline (ties: lower index); each gets
     the smallest free RU whose rate finishes the head frame by its deadline if it is served
@@ -327,7 +327,7 @@ class GreedyEdfAllocator:
             return layout
         slack = demand.slack_ticks[active]
         order = active[np.lexsort((active, slack))]
-        need_sc = demand.head_bits[order] / (  # eq_greedy
+        need_sc = demand.head_bits[order] / (  # [greedy]
             np.maximum(demand.slack_ticks[order], 1.0) * e[order]
         )
         packer = self._packer
@@ -355,11 +355,11 @@ class AdmissionGreedyAllocator:
     """The improved greedy: the paper's rule for the admitted frames, the rest of the band to
     the backlog (deadline order).
 
-    1. Admission (``eq_admit``, :func:`~codesign_mb.wifi.admission.admit_lists`): the largest
+    1. Admission ([admit], :func:`~codesign_mb.wifi.admission.admit_lists`): the largest
        set of head frames earliest-deadline-first finishes in time on a band serving
        ``admission_capacity`` full bands per tick (weighted by ``demand.weights``).
     2. The admitted, in deadline order, get the smallest free RU that finishes the head frame
-       by its deadline if served every remaining tick (``eq_greedy``), or the largest free one.
+       by its deadline if served every remaining tick ([greedy]), or the largest free one.
     3. Spectrum left over: RUs grow in place, and stations without one are seated, towards the
        whole backlog, admitted stations first, then the rejected, each in deadline order.
 
@@ -399,7 +399,7 @@ class AdmissionGreedyAllocator:
         admitted = [i for i, k in zip(stations, keep, strict=True) if k]
         rejected = [i for i, k in zip(stations, keep, strict=True) if not k]
         packer = self._packer
-        need = (head / (slack * e_o)).tolist()  # eq_greedy, subcarriers per tick
+        need = (head / (slack * e_o)).tolist()  # [greedy], subcarriers per tick
         sizes = packer.sizes_for(np.asarray(need))
         lay, used, largest = [-1] * n, 0, len(packer.sizes) - 1
         for i, k, x, ok in zip(stations, sizes, need, keep, strict=True):

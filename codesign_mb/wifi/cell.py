@@ -5,7 +5,7 @@ Lockstep
 Robot ``i`` captures its step-``t`` camera frame at tick ``c_i(t) = t * P + o_i`` (``P`` = 40
 ticks, ``o_i`` its capture offset) and reads its step-``t`` observation at the same instant,
 so a state is delivered with latency ``tau`` iff both its frames arrive by ``c_i(t + tau)``
-(``eq_deadline``). :meth:`WifiLink.step` advances the shared channel *lazily* to ``c_i(t)``:
+([deadline]). :meth:`WifiLink.step` advances the shared channel *lazily* to ``c_i(t)``:
 that needs every frame captured before then, i.e. every other robot ``j`` must already have
 submitted its step whose capture precedes ``c_i(t)``. Stepping the robots round-robin in
 order of their offsets (:attr:`SharedChannel.step_order`) guarantees it, and
@@ -45,7 +45,7 @@ __all__ = [
 
 
 class ChannelProcess:
-    """Seeded per-station SNR, MCS and delivery probability over time (``eq_snr``, ``eq_per``)."""
+    """Seeded per-station SNR, MCS and delivery probability over time ([snr], [per])."""
 
     def __init__(self, config: WifiConfig, n_stations: int, rng: np.random.Generator) -> None:
         self.config = config
@@ -246,7 +246,7 @@ class SharedChannel:
         st.requested += qos.reliability
         st.steps += 1
         if admitted:
-            deadline = cap + qos.latency_steps * self.period_ticks  # eq_deadline
+            deadline = cap + qos.latency_steps * self.period_ticks  # [deadline]
             ul_ok = bool(fate[0] < self.process.ul_pdr[station])
             dl_ok = bool(fate[1] < self.process.dl_pdr[station])
             frame = Frame(

@@ -1,6 +1,6 @@
 """Per-station channel, packet error rate per MCS, and link adaptation to a delivery target q0.
 
-SNR (``eq_snr``)
+SNR ([snr])
 ----------------
 ``SNR_i = P_tx - PL(d_i) + 10 log10 g_i - N``, with the TGax indoor path loss (IEEE
 802.11-14/0980r16, models B-D) ``PL(d) = 40.05 + 20 log10(f_c / 2.4 GHz) + 20 log10(min(d,
@@ -11,7 +11,7 @@ inf``: no fading), seeded. The SNR per subcarrier is taken to be the same on eve
 spreads its power evenly; an uplink station's power concentration on a small RU is ignored,
 which is conservative).
 
-PER (``eq_per``)
+PER ([per])
 ----------------
 For a PSDU of ``L_ref = 4096`` bytes the PER of MCS ``m`` is a logistic fit of an AWGN
 waterfall, ``PER_m(s) = 1 / (1 + exp(a (s - s50_m)))``, placed so that ``PER = 10 %`` at the
@@ -53,7 +53,7 @@ SENSITIVITY_20MHZ_DBM = (-82, -79, -77, -74, -70, -66, -65, -64, -59, -57, -54, 
 
 _REFERENCE_NOISE_DBM = -174.0 + 10.0 * math.log10(20e6) + 10.0
 SNR_THRESHOLDS_DB = tuple(s - _REFERENCE_NOISE_DBM for s in SENSITIVITY_20MHZ_DBM)
-"""SNR at which each MCS has 10 % PER on a 4096-byte PSDU (``eq_per``), in dB."""
+"""SNR at which each MCS has 10 % PER on a 4096-byte PSDU ([per]), in dB."""
 
 PER_REFERENCE_BYTES = 4096
 
@@ -61,7 +61,7 @@ PER_REFERENCE_BYTES = 4096
 def packet_error_rate(
     mcs: int | NDArray, snr_db: float | NDArray, *, slope_per_db: float = 2.0
 ) -> NDArray[np.float64]:
-    """PER of a 4096-byte PSDU at ``snr_db`` (``eq_per``), broadcast over ``mcs`` and SNR.
+    """PER of a 4096-byte PSDU at ``snr_db`` ([per]), broadcast over ``mcs`` and SNR.
 
     Examples
     --------
@@ -133,7 +133,7 @@ class ChannelConfig:
     coherence_ms:
         Block-fading coherence time: one gain per station and block.
     per_slope_per_db:
-        Slope ``a`` of the logistic PER curves (``eq_per``).
+        Slope ``a`` of the logistic PER curves ([per]).
     q0:
         Link-level delivery target of the chosen MCS (``eq_drop``), end to end (UL then DL).
     fixed_mcs:
@@ -191,7 +191,7 @@ class ChannelConfig:
             )
 
     def path_loss_db(self, distance_m: NDArray | float) -> NDArray[np.float64]:
-        """TGax indoor path loss plus :attr:`extra_loss_db` (``eq_snr``)."""
+        """TGax indoor path loss plus :attr:`extra_loss_db` ([snr])."""
         d = np.maximum(np.asarray(distance_m, dtype=float), 1.0)
         near = np.minimum(d, self.breakpoint_m)
         far = np.maximum(d / self.breakpoint_m, 1.0)
@@ -228,7 +228,7 @@ class ChannelConfig:
     def snr_db(
         self, distance_m: NDArray, gain: NDArray, bandwidth_mhz: float, *, uplink: bool
     ) -> NDArray[np.float64]:
-        """``eq_snr`` for the uplink (station power) or the downlink (AP power)."""
+        """[snr] for the uplink (station power) or the downlink (AP power)."""
         power = self.sta_tx_power_dbm if uplink else self.ap_tx_power_dbm
         return (
             power

@@ -1,21 +1,21 @@
-"""The convex RU allocator: admission control, the QP relaxation ``eq_qp``, rounding.
+"""The convex RU allocator: admission control, the QP relaxation [qp], rounding.
 
 Per tick, :class:`ConvexAllocator` admits the head frames that earliest-deadline-first can
-still finish in time (``eq_admit``, :mod:`codesign_mb.wifi.admission`) and whose must-serve
+still finish in time ([admit], :mod:`codesign_mb.wifi.admission`) and whose must-serve
 shares, each rounded up to an RU size, fit one layout (RU-size-aware admission: while they do
 not, the frame of the largest work per value among those that must be served now is
 rejected and the shares recomputed), solves the relaxation
-``eq_qp`` over fractional RU assignments by size class for the admitted stations
+[qp] over fractional RU assignments by size class for the admitted stations
 (:mod:`codesign_mb.wifi.convex_qp`: built once, as cvxpy ``Parameter``s (DPP) and as an OSQP
 workspace whose ``P`` and ``A`` stay fixed while only ``q, u`` change per tick, the hot path),
-and rounds the fractional solution to a valid layout (``eq_round``).
+and rounds the fractional solution to a valid layout ([round]).
 
-Rounding (``eq_round``)
+Rounding ([round])
 -----------------------
 Each admitted station may get an RU size in the support of its relaxed ``x_i``, the size
 just below or just above its relaxed service ``(t_i + z_i) S``, or the smallest size
 carrying its must-serve share ``T_i``; among those choices the layout that maximises the
-per-tick objective (``eq_qp``'s at ``rho = 0``, :mod:`codesign_mb.wifi.tick_dp`) is found
+per-tick objective ([qp]'s at ``rho = 0``, :mod:`codesign_mb.wifi.tick_dp`) is found
 exactly by dynamic programming over the plan's structure. Spectrum left then goes towards
 the whole backlog (:meth:`~codesign_mb.wifi.allocators.RuPacker.grow`), admitted stations
 first, rejected ones after, each group in deadline order. On 100 seeded random ticks
@@ -26,7 +26,7 @@ Solver failures
 ---------------
 After every solve the solver's status is checked. When the solution cannot be used (a failed
 status, values that are not finite), the tick falls back to zero relaxed service: the rounding
-still offers the admitted frames their must-serve RU sizes (which come from ``eq_admit``,
+still offers the admitted frames their must-serve RU sizes (which come from [admit],
 not from the solver), then spreads the spectrum towards the backlog. The allocator counts
 these ticks (:attr:`ConvexAllocator.fallbacks`, :attr:`ConvexAllocator.last_fallback_reason`);
 the simulator reports them (:attr:`codesign_mb.wifi.engine.ChannelEngine.fallbacks`).
@@ -62,7 +62,7 @@ class ConvexAllocatorConfig:
         Most stations a demand may have (the cvxpy model's size; the hot path builds OSQP
         models sized to the admitted stations, in a few bucket sizes up to this).
     regularization:
-        ``rho`` of ``eq_qp``: makes the optimum unique (hot path == cvxpy) and OSQP fast.
+        ``rho`` of [qp]: makes the optimum unique (hot path == cvxpy) and OSQP fast.
     surplus_weight:
         ``beta``: value of service ahead of need of the earliest-deadline admitted frame,
         relative to must-serve service (``a = 1``); in (0, 1).
@@ -73,7 +73,7 @@ class ConvexAllocatorConfig:
         in {0.5, 0.2, 0.1, 0.05} x gamma in {0.5, 0.2, 0.1}; ``solvers/
         select_tick_objective.py``); 0.5, 0.5 delivered 8 % fewer frames.
     admission:
-        Admission control (``eq_admit``). ``False``: every frame that can make its deadline
+        Admission control ([admit]). ``False``: every frame that can make its deadline
         alone is admitted.
     admission_capacity:
         ``c``: full bands per tick the admission test assumes (below 1 leaves a margin for
@@ -140,7 +140,7 @@ def _bucket_sizes(n: int) -> list[int]:
 
 
 class _Tick:
-    """Per-tick data of :class:`ConvexAllocator`: ``eq_admit`` and the weights of ``eq_qp``.
+    """Per-tick data of :class:`ConvexAllocator`: [admit] and the weights of [qp].
 
     ``order`` holds the admitted stations in deadline order; they are also the QP's station
     slots, in that order (``a``, ``b``, ``t_max``, ``z_max`` are aligned with it). ``must`` is
@@ -196,7 +196,7 @@ class _Tick:
 
 
 class _TickAllocator:
-    """What the convex and the tick-optimal allocators share: admission (``eq_admit``), the
+    """What the convex and the tick-optimal allocators share: admission ([admit]), the
     per-tick objective (:mod:`codesign_mb.wifi.tick_dp`) and the layout built from it.
 
     ``config`` needs ``bandwidth_mhz``, ``n_stations``, ``surplus_weight``,
@@ -237,7 +237,7 @@ class _TickAllocator:
         return tick
 
     def admitted(self, demand: TickDemand) -> NDArray[np.int64]:
-        """Stations whose head frame ``eq_admit`` admits, in deadline order."""
+        """Stations whose head frame [admit] admits, in deadline order."""
         return self._tick(demand).order.copy()
 
     def tick_objective(
@@ -249,7 +249,7 @@ class _TickAllocator:
 
     def _layout(self, tick: _Tick, allowed: NDArray[np.bool_] | None) -> NDArray[np.int64]:
         """The best layout of the admitted for the per-tick objective (sizes restricted to
-        ``allowed``), then the spectrum left towards the whole backlog (``eq_round``)."""
+        ``allowed``), then the spectrum left towards the whole backlog ([round])."""
         lay = [-1] * tick.m
         order = tick.order_list
         used = 0
@@ -265,7 +265,7 @@ class _TickAllocator:
 
 
 class ConvexAllocator(_TickAllocator):
-    """Admission control (``eq_admit``) and the QP relaxation ``eq_qp``, rounded (``eq_round``).
+    """Admission control ([admit]) and the QP relaxation [qp], rounded ([round]).
 
     The cvxpy model (:attr:`problem`, DPP) is built once for ``config.n_stations`` stations.
     The hot path solves the same problem restricted to the admitted stations (the others'
@@ -362,7 +362,7 @@ class ConvexAllocator(_TickAllocator):
 
     @property
     def problem(self) -> Any:
-        """The cvxpy model of ``eq_qp`` (built on first use)."""
+        """The cvxpy model of [qp] (built on first use)."""
         return self._cvxpy_model().problem
 
     def solve_cvxpy(self, demand: TickDemand) -> NDArray[np.float64]:
@@ -381,7 +381,7 @@ class ConvexAllocator(_TickAllocator):
 
     # -- rounding -------------------------------------------------------------------------------
     def round(self, v: NDArray[np.float64], demand: TickDemand) -> NDArray[np.int64]:
-        """``eq_round``: a valid layout from the relaxed solution ``v`` (full layout)."""
+        """[round]: a valid layout from the relaxed solution ``v`` (full layout)."""
         tick = self._tick(demand)
         n, k = self._n, self._k
         order = tick.order
@@ -391,7 +391,7 @@ class ConvexAllocator(_TickAllocator):
     def _round(
         self, tick: _Tick, served: NDArray[np.float64], x: NDArray[np.float64] | None = None
     ) -> NDArray[np.int64]:
-        """``eq_round`` from the relaxed solution of the admitted (``tick.order``): service
+        """[round] from the relaxed solution of the admitted (``tick.order``): service
         ``t + z`` and RU-size shares ``x`` (rows: stations). Each station may get an RU size in
         the support of its ``x``, the size just below or just above its relaxed service, or
         the smallest one carrying its must-serve share ``T``; the best such layout for the
@@ -405,7 +405,7 @@ class ConvexAllocator(_TickAllocator):
             return self.round(self.solve_cvxpy(demand), demand)
         j = len(tick.order_list)
         if j == 1:
-            # one station in eq_qp: its optimum (without rho) is the backlog, up to the band
+            # one station in [qp]: its optimum (without rho) is the backlog, up to the band
             served = tick.t_max + tick.z_max
         elif j:
             solution = self._solve_sized(tick)

@@ -1,6 +1,6 @@
-"""The convex allocator's per-tick QP relaxation ``eq_qp``: an OSQP workspace and a cvxpy model.
+"""The convex allocator's per-tick QP relaxation [qp]: an OSQP workspace and a cvxpy model.
 
-``eq_qp`` (per tick; variables scaled to fractions of the full band's ``S`` data subcarriers;
+[qp] (per tick; variables scaled to fractions of the full band's ``S`` data subcarriers;
 only the admitted stations are variables)::
 
     max  sum_i a_i t_i + b_i z_i - rho/2 (|x|^2 + |t|^2 + |z|^2)
@@ -55,7 +55,7 @@ _CVXPY_USABLE = ("optimal", "optimal_inaccurate", "user_limit")
 
 @dataclass(frozen=True)
 class QpShape:
-    """The channel's data in ``eq_qp``, per RU size ``k`` (arrays of shape ``(k,)``).
+    """The channel's data in [qp], per RU size ``k`` (arrays of shape ``(k,)``).
 
     Attributes
     ----------
@@ -83,7 +83,7 @@ class QpShape:
 
 
 def qp_matrices(m: int, shape: QpShape) -> tuple[sp.csc_matrix, sp.csc_matrix, int]:
-    """``eq_qp`` for ``m`` stations as OSQP's ``A`` (constraints, then variable bounds), ``P``.
+    """[qp] for ``m`` stations as OSQP's ``A`` (constraints, then variable bounds), ``P``.
 
     Returns ``A``, ``P`` (without ``rho``) and the number of constraint rows before the bounds.
     """
@@ -113,7 +113,7 @@ def qp_matrices(m: int, shape: QpShape) -> tuple[sp.csc_matrix, sp.csc_matrix, i
 
 
 class OsqpQp:
-    """An OSQP workspace of ``eq_qp`` for ``m`` station slots (matrices fixed, vectors per tick).
+    """An OSQP workspace of [qp] for ``m`` station slots (matrices fixed, vectors per tick).
 
     The solver is driven through its extension object when the installed ``osqp`` exposes it
     (``OSQP._solver``): the Python wrapper's ``update``/``solve`` add ~50 us of bookkeeping
@@ -213,7 +213,7 @@ class OsqpQp:
 
 
 class CvxpyQp:
-    """``eq_qp`` for ``n`` stations as a cvxpy model, built once with ``Parameter``s (DPP).
+    """[qp] for ``n`` stations as a cvxpy model, built once with ``Parameter``s (DPP).
 
     The per-tick data ``a, b, T, Z, active`` are parameters; ``active_i = 0`` pins station
     ``i``'s variables to 0 (not admitted, or no station in that slot).
@@ -250,7 +250,7 @@ class CvxpyQp:
         ]
         self.problem = cp.Problem(objective, constraints)
         if not self.problem.is_dpp():
-            raise AssertionError("eq_qp must be DPP")
+            raise AssertionError("[qp] must be DPP")
         self._warm_start = True  # off for the solve after a failure
         self._variables = (x, t, z)
         self._parameters = (a, b, t_max, z_max, active)

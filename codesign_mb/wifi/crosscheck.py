@@ -3,7 +3,7 @@
 Both sides run ``N`` stations, each with one camera frame (13,500 B up) and one state frame
 (32 B down) per 40 ms period, at one fixed MCS, captures staggered or synchronised, and no
 channel errors. A frame is delivered if its state frame reaches the robot within the period
-(``eq_deadline``, ``tau = 1``); the *capacity* is the largest ``N`` with at least 95 % of the
+([deadline], ``tau = 1``); the *capacity* is the largest ``N`` with at least 95 % of the
 frames delivered, found by bisection (the delivered fraction falls with ``N``).
 
 Ours: the slot simulator (:class:`~codesign_mb.wifi.engine.ChannelEngine`) replays the

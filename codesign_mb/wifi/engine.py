@@ -1,21 +1,21 @@
 """The slot-level WiFi 6 simulator: queues served by RU allocations every 1 ms tick.
 
 One tick ``k`` (:class:`~codesign_mb.wifi.mac.MacTiming`): expired frames leave the queues
-(``eq_deadline``; a camera frame expires ``1 + processing`` ticks before its deadline, the
+([deadline]; a camera frame expires ``1 + processing`` ticks before its deadline, the
 least its state frame needs, and allocators see that earlier deadline for it); every
 ``bsrp_interval_ticks`` the AP polls (BSRP) the stations whose queue it believes empty, and
 it sees a camera frame only once a BSR reported it (a poll, or the BSR a station sends with
 its data); if state frames are ready, the allocator lays out one DL MU PPDU for all of them,
 as long as their longest A-MPDU needs, and each scheduled station is served ``N_SD(r) *
-e_dl`` bits (``eq_serve``); then, if reported camera frames are queued, it lays out the UL
-TB PPDU with every data symbol left in the tick (``eq_air_ul``): the allocator sizes RUs with
+e_dl`` bits ([serve]); then, if reported camera frames are queued, it lays out the UL
+TB PPDU with every data symbol left in the tick ([air_ul]): the allocator sizes RUs with
 the symbols left if every reported station were triggered, and the PPDU then gets the symbols
 left by the Trigger frame and multi-STA BlockAck of the stations it scheduled (their User Info
 and per-station fields are what grow with the users). Every served PSDU loses its SERVICE
 and tail bits. A camera frame served in full
 at tick ``k`` queues its state frame at tick ``k + 1 + processing``; a state frame served in
 full at tick ``k`` is at the robot at time ``k + 1`` (ticks). A frame whose channel fate (drawn
-from the hop's delivery probability, ``eq_per``) is "lost" is sent but never delivered.
+from the hop's delivery probability, [per]) is "lost" is sent but never delivered.
 
 :class:`ChannelEngine` is the mutable state of one cell (queues, clock, statistics, and the
 allocators' solver fallbacks, :class:`FallbackCount`); :mod:`codesign_mb.wifi.sim` replays

@@ -1,6 +1,6 @@
 """802.11ax MAC airtime of one schedule tick: the frame exchanges, their PPDUs and overheads.
 
-One tick is one TXOP of the AP, won by EDCA (``eq_air_ul``, ``eq_air_dl``)::
+One tick is one TXOP of the AP, won by EDCA ([air_ul], [air_dl])::
 
     access | [BSRP exchange] | [DL MU exchange] | [UL trigger-based exchange]
 
@@ -22,7 +22,7 @@ it falls in. Frame sizes count every header: per MSDU LLC/SNAP, IP and UDP; per 
 Data MAC header with HT Control and FCS; per A-MPDU subframe a delimiter and padding; per PPDU
 and user the SERVICE field and tail bits; an A-MPDU that ends inside an MPDU sends it as a
 dynamic fragment (26.3), one more MAC header, FCS and delimiter. Not modelled:
-retransmissions (a frame the channel loses is lost, ``eq_per``), other BSSs, RTS/CTS.
+retransmissions (a frame the channel loses is lost, [per]), other BSSs, RTS/CTS.
 """
 
 from __future__ import annotations
@@ -266,14 +266,14 @@ class MacTiming:
     def dl_exchange_us(
         self, n_users: int, n_symbols: int, ack_symbols: int, phy: PhyConfig
     ) -> float:
-        """``eq_air_dl``: MU PPDU + SIFS + block acks in a TB PPDU + SIFS (0 without DL users)."""
+        """[air_dl]: MU PPDU + SIFS + block acks in a TB PPDU + SIFS (0 without DL users)."""
         if n_users <= 0:
             return 0.0
         mu = self.he_mu_ppdu_us(n_symbols, n_users, phy)
         return mu + self.sifs_us + self.he_tb_ppdu_us(ack_symbols, phy) + self.sifs_us
 
     def ul_overhead_us(self, n_users: int, phy: PhyConfig) -> float:
-        """``eq_air_ul`` without the data symbols: trigger, SIFS, TB preamble, SIFS, M-BA."""
+        """[air_ul] without the data symbols: trigger, SIFS, TB preamble, SIFS, M-BA."""
         return (
             self.trigger_us(n_users)
             + self.sifs_us

@@ -6,7 +6,7 @@ MCS (``ConstantRateWifiManager``; control frames at the MCS's non-HT reference r
 the traffic of paper Table II: every ``period`` each station sends its camera frame as UDP
 datagrams of at most 1472 bytes (IP MTU 1500); when the AP has received all of them it sends the
 station's 32-byte state frame. A frame counts as delivered if the state frame reaches the
-station within the period (``eq_deadline`` with ``tau = 1``).
+station within the period ([deadline] with ``tau = 1``).
 
 ``access="su"``: every frame by EDCA (stations contend; A-MPDU with block ack agreements).
 ``access="ofdma"``: the AP runs ns-3's ``RrMultiUserScheduler`` (DL OFDMA, UL OFDMA solicited by

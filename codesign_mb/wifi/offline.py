@@ -3,7 +3,7 @@
 For a recorded :class:`~codesign_mb.wifi.sim.Trace` (every admitted frame, every station's
 MCS at every tick) we relax the RU layout of each tick to its total data subcarriers and
 track, per frame ``f`` and tick ``k``, the cumulative fractions ``U_fk`` of its camera frame
-and ``V_fk`` of its state frame that have been sent (``eq_lp``)::
+and ``V_fk`` of its state frame that have been sent ([lp])::
 
     max  sum_f V_f,last
     s.t. U_f,k-1 <= U_f,k,   V_f,k-1 <= V_f,k,   0 <= U, V <= 1
@@ -14,7 +14,7 @@ and ``V_fk`` of its state frame that have been sent (``eq_lp``)::
          sum_f B_f^DL (V_fk - V_f,k-1) / (b_ik N_DL) <= S    DL subcarriers of tick k
 
 with ``U`` defined on ``[capture, deadline - 1 - p)`` and ``V`` on ``[capture + 1 + p,
-deadline)`` (``eq_deadline``), ``b_ik`` the bits per subcarrier-symbol of station ``i``,
+deadline)`` ([deadline]), ``b_ik`` the bits per subcarrier-symbol of station ``i``,
 ``N_UL`` the most UL data symbols a tick can hold (one user, no DL, no BSRP poll, no beacon),
 ``N_UL'`` the most when the tick also holds a DL exchange (its shortest: one user, one data
 and one ack symbol), ``N_DL`` the most DL data symbols of a DL MU PPDU
@@ -56,7 +56,7 @@ LP_SOLVERS = ("highs", "clarabel", "osqp")
 
 @dataclass(frozen=True)
 class OfflineLp:
-    """``eq_lp`` as ``max c'x  s.t.  A x <= b, 0 <= x <= 1``.
+    """[lp] as ``max c'x  s.t.  A x <= b, 0 <= x <= 1``.
 
     ``frame_rows`` are the rows of the trace's frame table in the LP (one per frame, in
     order; ``objective_vars`` their ``V_f,last``), ``ul_rows``/``ul_ticks`` and
@@ -85,7 +85,7 @@ class OfflineLp:
 
 @dataclass(frozen=True)
 class OfflineResult:
-    """Optimum of ``eq_lp`` (frames deliverable in time, fractional) and how it was found."""
+    """Optimum of [lp] (frames deliverable in time, fractional) and how it was found."""
 
     optimum: float
     solver: str
@@ -102,7 +102,7 @@ _Entries = list[tuple[int, int, float]]
 
 
 class _LpAssembly:
-    """``eq_lp`` of one trace under assembly: COO triplets of the rows, per-tick capacity entries.
+    """[lp] of one trace under assembly: COO triplets of the rows, per-tick capacity entries.
 
     Rows come in the order of the frames (per frame: the camera frame's monotonicity rows, then
     per state-frame tick its monotonicity and precedence rows), then the DL-exchange rows, then
@@ -232,7 +232,7 @@ def _int_column(frames: pd.DataFrame, name: str) -> list[int]:
 
 
 def build_offline_lp(trace: Trace) -> OfflineLp:
-    """Assemble ``eq_lp`` for a trace (sparse, ``O(frames x window)`` non-zeros).
+    """Assemble [lp] for a trace (sparse, ``O(frames x window)`` non-zeros).
 
     Frames the channel loses on either hop are left out: no schedule can deliver them.
     """
@@ -301,7 +301,7 @@ def _solve(lp: OfflineLp, solver: str) -> tuple[float, str]:
 
 
 def offline_optimum(trace: Trace, *, solver: str = "highs") -> OfflineResult:
-    """Solve ``eq_lp`` for ``trace``: the most frames any scheduler can deliver in time.
+    """Solve [lp] for ``trace``: the most frames any scheduler can deliver in time.
 
     Parameters
     ----------
@@ -333,7 +333,7 @@ def offline_optimum(trace: Trace, *, solver: str = "highs") -> OfflineResult:
 
 @dataclass(frozen=True)
 class AirtimePrices:
-    """``eq_lp`` solved with its duals: what airtime is worth, in frames delivered in time.
+    """[lp] solved with its duals: what airtime is worth, in frames delivered in time.
 
     Attributes
     ----------
@@ -356,7 +356,7 @@ class AirtimePrices:
 
 
 def airtime_prices(trace: Trace) -> AirtimePrices:
-    """Solve ``eq_lp`` with HiGHS and read the dual prices of the per-tick capacity rows.
+    """Solve [lp] with HiGHS and read the dual prices of the per-tick capacity rows.
 
     By LP duality a frame the optimum delivers pays for its airtime at these prices with the
     value it creates (1 frame), and one left out would cost more than that: ``ul_bill`` is

@@ -6,14 +6,14 @@ An HE PPDU of 20/40/80 MHz is cut into RUs of 26, 52, 106, 242, 484 and 996 tone
 24, 48, 102, 234, 468 and 980 data subcarriers (IEEE 802.11ax-2021, 27.3.2.2). Their tone
 positions are those of Tables 27-7 to 27-9 (subcarrier index ranges, DC at 0). Two RUs
 *overlap* when their tone sets intersect; an OFDMA layout is a set of pairwise non-overlapping
-RUs, one per station (``eq_layout``). We also describe every RU by the 26-tone RUs it covers
+RUs, one per station ([layout]). We also describe every RU by the 26-tone RUs it covers
 (its *units*, a bit mask): the tone plan is laminar, so two RUs overlap iff their unit masks
 intersect, which is what the allocators use. The centre 26-tone RU of a 20 MHz (and of the
 80 MHz) channel is covered by no 52- or 106-tone RU.
 
 Rates
 -----
-``rate = N_SD * N_BPSCS * R * N_SS / (T_DFT + T_GI)`` (``eq_rate``) with ``T_DFT = 12.8 us``
+``rate = N_SD * N_BPSCS * R * N_SS / (T_DFT + T_GI)`` ([rate]) with ``T_DFT = 12.8 us``
 and ``T_GI`` in {0.8, 1.6, 3.2} us. E.g. 484-tone RU, MCS 11, 1 stream, 0.8 us GI:
 468 * 10 * 5/6 / 13.6 us = 286.8 Mb/s.
 
@@ -147,7 +147,7 @@ def he_ltf_symbol_us(guard_interval_us: float, *, trigger_based: bool) -> float:
 def data_rate_mbps(
     ru_tones: int, mcs: int, *, spatial_streams: int = 1, guard_interval_us: float = 0.8
 ) -> float:
-    """PHY data rate of one RU (``eq_rate``), in Mb/s.
+    """PHY data rate of one RU ([rate]), in Mb/s.
 
     Parameters
     ----------
@@ -174,7 +174,7 @@ def data_rate_mbps(
     m = _check_mcs(mcs)
     symbol_us = SYMBOL_DFT_US + _check_gi(guard_interval_us)
     bits = DATA_SUBCARRIERS[ru_tones] * m.bits_per_data_subcarrier * spatial_streams
-    return bits / symbol_us  # eq_rate (bits per us = Mb/s)
+    return bits / symbol_us  # [rate] (bits per us = Mb/s)
 
 
 # --------------------------------------------------------------------------- RU plan
@@ -269,7 +269,7 @@ class ResourceUnit:
         return self.unit_mask.bit_count()
 
     def overlaps(self, other: ResourceUnit) -> bool:
-        """Whether the two RUs share a subcarrier (``eq_layout``)."""
+        """Whether the two RUs share a subcarrier ([layout])."""
         return bool(self.unit_mask & other.unit_mask)
 
 
@@ -431,7 +431,7 @@ class PhyConfig:
         return table[np.asarray(mcs, dtype=int)] * self.spatial_streams
 
     def rate_table(self) -> list[dict[str, float | int | str]]:
-        """Rate of every (RU size, MCS) of this channel at the DL and UL GI, Mb/s (``eq_rate``)."""
+        """Rate of every (RU size, MCS) of this channel at the DL and UL GI, Mb/s ([rate])."""
         rows: list[dict[str, float | int | str]] = []
         for tones in self.plan.sizes:
             for m in MCS_TABLE:

@@ -5,11 +5,11 @@ Per-tick objective
 For the admitted stations ``i`` (deadline order) with must-serve share ``T_i``, backlog
 share ``Z_i`` beyond it (both fractions of the widest RU's ``S`` data subcarriers), value
 ``a_i`` of must-serve service and ``b_i < a_i`` of service ahead of need, a valid layout
-(``eq_layout``) giving station ``i`` the RU ``r_i`` is worth::
+([layout]) giving station ``i`` the RU ``r_i`` is worth::
 
     V(r) = sum_i a_i min(s_i, T_i) + b_i min((s_i - T_i)^+, Z_i),   s_i = N_SD(r_i) / S
 
-which is the objective of the relaxation ``eq_qp`` (:mod:`codesign_mb.wifi.convex_qp`) at
+which is the objective of the relaxation [qp] (:mod:`codesign_mb.wifi.convex_qp`) at
 ``rho = 0``, maximised over ``t, z`` for the fixed layout (``a >= b``: must-serve service
 first). The exact per-tick optimum maximises ``V`` over every valid layout of the plan;
 :mod:`codesign_mb.wifi.tick_milp` writes it as a MILP for HiGHS (the reference).
@@ -313,7 +313,7 @@ class TickDp:
         x: NDArray[np.float64] | None,
         t_max: NDArray[np.float64],
     ) -> NDArray[np.bool_]:
-        """RU sizes each station may get when rounding a relaxed solution (``eq_round``):
+        """RU sizes each station may get when rounding a relaxed solution ([round]):
         the sizes in the support of its relaxed ``x`` (rows: stations; ``None``: none), the
         sizes just below and just above its relaxed service ``served`` and the smallest
         carrying its must-serve share ``T`` (both fractions of the band)."""

@@ -1,6 +1,6 @@
 """The exact per-tick optimum as a MILP (HiGHS through ``scipy.optimize.milp``): the reference.
 
-The per-tick objective is the one of :mod:`codesign_mb.wifi.tick_dp` (``eq_qp`` at
+The per-tick objective is the one of :mod:`codesign_mb.wifi.tick_dp` ([qp] at
 ``rho = 0``). This formulation shares nothing with the dynamic programme but the plan: it
 works on RU positions and their 26-tone units, not on the plan's sub-channel structure::
 
@@ -10,7 +10,7 @@ works on RU positions and their 26-tone units, not on the plan's sub-channel str
          sum_i sum_{r covers u} y_ir <= 1            every 26-tone unit u used at most once
          0 <= t_i <= T_i,  0 <= z_i <= Z_i,  y_ir in {0, 1}
 
-(``eq_layout``: RUs that share no 26-tone unit share no tone in 802.11ax.)
+([layout]: RUs that share no 26-tone unit share no tone in 802.11ax.)
 """
 
 from __future__ import annotations

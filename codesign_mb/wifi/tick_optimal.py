@@ -1,4 +1,4 @@
-"""The tick-optimal allocator: admission (``eq_admit``), then the exact per-tick optimum.
+"""The tick-optimal allocator: admission ([admit]), then the exact per-tick optimum.
 
 It shares the convex allocator's admission (RU-size-aware) and per-tick objective
 (:mod:`codesign_mb.wifi.tick_dp`), but instead of relaxing the layout problem and rounding,
@@ -56,7 +56,7 @@ class TickOptimalConfig:
 
 
 class TickOptimalAllocator(_TickAllocator):
-    """Admission control (``eq_admit``, RU-size-aware), then the layout that maximises the
+    """Admission control ([admit], RU-size-aware), then the layout that maximises the
     per-tick objective exactly (:class:`~codesign_mb.wifi.tick_dp.TickDp`)."""
 
     def __init__(self, config: TickOptimalConfig | None = None) -> None:

@@ -3,7 +3,7 @@
 Every control step (40 ms) robot ``i`` captures one uplink camera frame (13,500 bytes) at
 ``t * period + offset_i``; the edge turns it into one downlink state frame (32 bytes). Both
 must arrive before the robot reads its observation at step ``t + tau`` (its latency request),
-i.e. by ``capture + tau * period`` (``eq_deadline``): a state reaches the robot only if its
+i.e. by ``capture + tau * period`` ([deadline]): a state reaches the robot only if its
 camera frame and then its state frame arrive in time. Before the queue, a frame is dropped with
 probability ``1 - q / q0`` (``eq_drop``), so that with a link-level delivery ``q0`` the frame is
 delivered with probability ``q``.
