@@ -232,10 +232,13 @@ def test_cli_evaluate_writes_table_and_summary(tmp_path) -> None:
     assert result.exit_code == 0, result.output
     summary = json.loads(result.stdout)
     assert summary["trials"] == 2 and 0.0 <= summary["success_ci_low"] <= 1.0
-    assert summary["mean_requested_reliability"] == pytest.approx(0.8)
     for name in ("evaluate.parquet", "evaluate.csv", "evaluate.json", "evaluate_summary.json"):
         assert (out / name).is_file()
     table = pd.read_parquet(out / "evaluate.parquet")
+    # q = 0.8 asked on every step with a detection at the edge, nothing on the others
+    expected = 0.8 * table["perceived_fraction"].mean()
+    assert summary["mean_requested_reliability"] == pytest.approx(expected)
+    assert 0.0 < summary["mean_requested_reliability"] <= 0.8
     assert len(table) == 2 and table["steps"].eq(20).all()
     assert json.loads((out / "evaluate_summary.json").read_text())["trials"] == 2
 
