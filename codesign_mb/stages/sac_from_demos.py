@@ -28,6 +28,8 @@ from stable_baselines3.common.type_aliases import ReplayBufferSamples
 from stable_baselines3.sac.policies import SACPolicy
 from torch import nn
 
+from codesign_mb.stages.training import make_sac
+
 __all__ = [
     "BehaviourCloningTerm",
     "DemoMixedReplayBuffer",
@@ -176,30 +178,13 @@ def make_sac_from_demos(
     the update-to-data ratio. Fill the demonstrations with
     ``model.replay_buffer.set_demonstrations(buffer)``.
     """
-    from stable_baselines3 import SAC
-
-    torch.set_num_threads(1)
-    ent = spec.ent_coef if spec.ent_coef.startswith("auto") else float(spec.ent_coef)
-    return SAC(
-        LayerNormSacPolicy if layer_norm_critics else "MlpPolicy",
+    return make_sac(
         env,
-        learning_rate=spec.learning_rate,
-        buffer_size=spec.buffer_size,
-        batch_size=spec.batch_size,
-        gamma=spec.gamma,
-        tau=spec.tau,
-        learning_starts=spec.learning_starts,
-        train_freq=spec.train_freq,
-        gradient_steps=spec.gradient_steps,
-        ent_coef=ent,
+        spec,
+        seed=seed,
+        policy=LayerNormSacPolicy if layer_norm_critics else "MlpPolicy",
+        policy_kwargs={"optimizer_kwargs": {"foreach": True}},  # one kernel per step
         target_entropy="auto" if target_entropy is None else float(target_entropy),
         replay_buffer_class=DemoMixedReplayBuffer,
         replay_buffer_kwargs={"demo_fraction": demo_fraction},
-        policy_kwargs={
-            "net_arch": [int(h) for h in spec.net_arch],
-            "optimizer_kwargs": {"foreach": True},  # one kernel per step, not per tensor
-        },
-        seed=seed,
-        device="cpu",
-        verbose=0,
     )

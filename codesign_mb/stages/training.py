@@ -142,15 +142,27 @@ class SacSpec:
                 ) from None
 
 
-def make_sac(env: gym.Env, spec: SacSpec, *, seed: int) -> Any:
-    """A fresh SB3 SAC on ``env`` (CPU, one torch thread: the machine is shared)."""
+def make_sac(
+    env: gym.Env,
+    spec: SacSpec,
+    *,
+    seed: int,
+    policy: Any = "MlpPolicy",
+    policy_kwargs: dict[str, Any] | None = None,
+    **extra: Any,
+) -> Any:
+    """A fresh SB3 SAC on ``env`` (CPU, one torch thread: the machine is shared).
+
+    ``policy``, ``policy_kwargs`` (added to the spec's ``net_arch``) and ``extra`` (SB3 SAC
+    keywords, e.g. a replay buffer class) let a stage change what it needs, nothing else.
+    """
     import torch
     from stable_baselines3 import SAC
 
     torch.set_num_threads(1)
     ent = spec.ent_coef if spec.ent_coef.startswith("auto") else float(spec.ent_coef)
     return SAC(
-        "MlpPolicy",
+        policy,
         env,
         learning_rate=spec.learning_rate,
         buffer_size=spec.buffer_size,
@@ -161,10 +173,11 @@ def make_sac(env: gym.Env, spec: SacSpec, *, seed: int) -> Any:
         train_freq=spec.train_freq,
         gradient_steps=spec.gradient_steps,
         ent_coef=ent,
-        policy_kwargs={"net_arch": [int(h) for h in spec.net_arch]},
+        policy_kwargs={"net_arch": [int(h) for h in spec.net_arch], **(policy_kwargs or {})},
         seed=seed,
         device="cpu",
         verbose=0,
+        **extra,
     )
 
 
