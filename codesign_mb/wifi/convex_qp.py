@@ -263,7 +263,8 @@ class CvxpyQp:
         when the solver failed (``last_status`` says how)."""
         for param, value in zip(self._parameters, values, strict=True):
             param.value = value
-        kwargs = {"eps_abs": eps, "eps_rel": eps} if solver == "OSQP" else {}
+        # OSQP as on the hot path (no polishing: it also prints to stdout, past verbose=False)
+        kwargs = {"eps_abs": eps, "eps_rel": eps, "polish": False} if solver == "OSQP" else {}
         v = self._solve(solver, kwargs)
         if v is None:
             self._warm_start = False
