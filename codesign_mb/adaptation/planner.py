@@ -48,6 +48,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.stats import chi2
 
+from codesign_mb.core.layout import entry_indices, slice_indices
 from codesign_mb.network.qos import QosRequest
 
 __all__ = ["QosPlanner"]
@@ -144,9 +145,8 @@ class QosPlanner:
         self.closing_std_m = 1.5 * self.grasp_std_m if closing_std_m is None else closing_std_m
         self.closing_width_m = float(closing_width_m)
         self.max_lookahead_steps = int(max_lookahead_steps)
-        self._gripper = _indices(layout["gripper_pos"])
-        width = layout.get("finger_width")
-        self._width = _indices(width) if width is not None else None
+        self._gripper = slice_indices(layout["gripper_pos"])
+        self._width = entry_indices(layout, "finger_width")
         self._send = QosRequest(high, self.latency_steps)
         self._skip = QosRequest(0.0, self.latency_steps)
         self.reset()
@@ -157,7 +157,6 @@ class QosPlanner:
         self._surprised = False
         self._start_z: float | None = None
         self._lifted = False
-        self.planned_grasp_steps: list[int] = []
         self.reason: str | None = None
         """Why the last request asked ``high`` (``None``: it did not)."""
 
@@ -209,7 +208,6 @@ class QosPlanner:
         if soon > self.far_std_m:
             return "far"
         steps = self.grasp_steps(held)
-        self.planned_grasp_steps.append(steps)
         if steps <= 1 + tau or self._in_window(held):
             # At the grasp (the robot may wait there for a certain estimate): keep the
             # uncertainty the packet is used at within the tolerance; once the fingers close
@@ -253,30 +251,26 @@ class QosPlanner:
             return False
         return float(np.mean(held[self._width])) < self.closing_width_m
 
+    def _offset(self, held: NDArray[np.float64]) -> tuple[float, float]:
+        """The gripper's horizontal distance to the estimated object and its height above it."""
+        obj, grip = self.replica.state, held[self._gripper]
+        return float(np.hypot(grip[0] - obj[0], grip[1] - obj[1])), float(grip[2] - obj[2])
+
     def _in_window(self, held: NDArray[np.float64]) -> bool:
         """The gripper at the grasp point (over the object, at its height): closing, or
         waiting there for an estimate certain enough to close on."""
-        obj, grip = self.replica.state, held[self._gripper]
-        lateral = float(np.hypot(grip[0] - obj[0], grip[1] - obj[1]))
-        return lateral <= self.grasp_window_m and grip[2] - obj[2] < self.grasp_height_m
+        lateral, height = self._offset(held)
+        return lateral <= self.grasp_window_m and height < self.grasp_height_m
 
     def grasp_steps(self, held: NDArray[np.float64]) -> int:
         """Planned steps from ``t - 1`` to the grasp decision (where the controller's
         uncertainty gate is met or not): approach, descend, then ``close_steps``."""
-        obj = self.replica.state
-        grip = held[self._gripper]
         dt = self.replica.control_period_s
-        lateral = float(np.hypot(grip[0] - obj[0], grip[1] - obj[1]))
+        lateral, above = self._offset(held)
         approach = max(lateral - self.grasp_window_m, 0.0) / (self.approach_speed_mps * dt)
-        height = max(float(grip[2] - obj[2]), 0.0)
+        height = max(above, 0.0)
         if lateral > self.grasp_window_m:
             height = max(height, self.hover_height_m)
         descend = height / (self.descend_speed_mps * dt)
         steps = math.ceil(approach + descend) + self.close_steps
         return int(min(max(steps, 1), self.max_lookahead_steps))
-
-
-def _indices(s: slice) -> NDArray[np.intp]:
-    if s.stop is None:
-        raise ValueError(f"layout slices need an explicit stop, got {s}")
-    return np.arange(s.start or 0, s.stop, s.step or 1)

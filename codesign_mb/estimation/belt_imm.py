@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from codesign_mb.core.layout import entry_indices, slice_indices
 from codesign_mb.estimation.base import split_networked_observation
 from codesign_mb.estimation.belt_model import MODES, N_STATE, STOP, BeltModel
 
@@ -101,11 +102,10 @@ class BeltImmPredictor:
             raise ValueError(f"max_delay_steps must be an integer >= 1, got {max_delay_steps!r}")
         self.layout = dict(layout)
         self.model = model
-        self._pos = _indices(self.layout["object_pos"])
-        self._vel = _indices(self.layout["object_vel"]) if "object_vel" in self.layout else None
-        self._grip = _indices(self.layout["gripper_pos"]) if "gripper_pos" in self.layout else None
-        width = self.layout.get("finger_width")
-        self._width = _indices(width) if width is not None else None
+        self._pos = slice_indices(self.layout["object_pos"])
+        self._vel = entry_indices(self.layout, "object_vel")
+        self._grip = entry_indices(self.layout, "gripper_pos")
+        self._width = entry_indices(self.layout, "finger_width")
         self.prior_position_std = np.broadcast_to(
             np.asarray(prior_position_std_m, dtype=float), (3,)
         ).copy()
@@ -402,9 +402,3 @@ def _moments(
     d = means - mean
     cov = np.einsum("j,jkl->kl", mu, covs) + np.einsum("j,jk,jl->kl", mu, d, d)
     return mean, cov
-
-
-def _indices(s: slice) -> NDArray[np.intp]:
-    if s.stop is None:
-        raise ValueError(f"layout slices need an explicit stop, got {s}")
-    return np.arange(s.start or 0, s.stop, s.step or 1)

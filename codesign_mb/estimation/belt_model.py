@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import cached_property
 from typing import Any
 
 import numpy as np
@@ -152,7 +153,11 @@ class BeltModel:
 
     def dynamics(self) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
         """Per mode ``(A, c, Q)``: ``x+ = A x + c + noise``, noise ``N(0, Q)``; shapes
-        ``(4, 9, 9)``, ``(4, 9)``, ``(4, 9, 9)``."""
+        ``(4, 9, 9)``, ``(4, 9)``, ``(4, 9, 9)`` (built once per model, read-only)."""
+        return self._dynamics
+
+    @cached_property
+    def _dynamics(self) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
         dt, eye, zero = self.control_period_s, np.eye(3), np.zeros((3, 3))
         cv = np.block([[eye, dt * eye, zero], [zero, eye, zero], [zero, zero, eye]])
         rest = np.block([[eye, zero, zero], [zero, zero, zero], [zero, zero, eye]])
@@ -171,6 +176,8 @@ class BeltModel:
         c = np.zeros((4, N_STATE))
         c[START, 3:6] = self.nominal_velocity_mps
         Q = np.stack([q_cv, q_cv + kick, at_rest, start])
+        for matrix in (A, c, Q):
+            matrix.setflags(write=False)  # shared by every caller
         return A, c, Q
 
     def measurement(self, *, velocity: bool) -> tuple[NDArray[np.float64], NDArray[np.float64]]:

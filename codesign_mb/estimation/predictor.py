@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from codesign_mb.core.layout import entry_indices, slice_indices
 from codesign_mb.estimation.base import split_networked_observation
 from codesign_mb.estimation.kalman import IntermittentKalmanFilter
 
@@ -119,10 +120,10 @@ class DelayCompensatingPredictor:
         if int(max_delay_steps) != max_delay_steps or max_delay_steps < 1:
             raise ValueError(f"max_delay_steps must be an integer >= 1, got {max_delay_steps!r}")
         self.layout = dict(layout)
-        self._pos = _indices(self.layout["object_pos"])
+        self._pos = slice_indices(self.layout["object_pos"])
         if len(self._pos) != 3:
             raise ValueError(f"object_pos must have 3 entries, got {len(self._pos)}")
-        self._vel = _indices(self.layout["object_vel"]) if "object_vel" in self.layout else None
+        self._vel = entry_indices(self.layout, "object_vel")
         measured = self._pos if self._vel is None else np.concatenate([self._pos, self._vel])
         step = np.diff(measured)
         self._measured: slice | None = (  # the same entries as a slice, when contiguous
@@ -297,9 +298,3 @@ class DelayCompensatingPredictor:
         state = self.__dict__.copy()
         state["_kf"] = None  # the filter is rebuilt by reset()
         return state
-
-
-def _indices(s: slice) -> NDArray[np.intp]:
-    if s.stop is None:
-        raise ValueError(f"layout slices need an explicit stop, got {s}")
-    return np.arange(s.start or 0, s.stop, s.step or 1)

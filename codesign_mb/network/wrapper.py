@@ -120,7 +120,8 @@ class LinkObservationWrapper(gym.Wrapper):
         held: NDArray[np.float64],
         age: int,
     ) -> tuple[NDArray, dict[str, Any]]:
-        seen = self._held_full if getattr(self.qos_policy, "reads_robot_state", False) else held
+        reads_robot_state = getattr(self.qos_policy, "reads_robot_state", False)
+        seen = self._held_full if reads_robot_state else held
         asked = self.qos_policy.request(seen, age)  # eq_q_pol, eq_t_pol
         if not isinstance(asked, QosRequest):
             raise TypeError(f"qos_policy.request must return a QosRequest, got {asked!r}")
@@ -133,7 +134,8 @@ class LinkObservationWrapper(gym.Wrapper):
         out[:-1] = obs
         out[self.remote_slice] = rx.observation  # eq_output
         out[-1] = rx.age
-        self._held_full = np.array(out[:-1], dtype=np.float64)
+        if reads_robot_state:  # what the robot holds now, for the next request
+            self._held_full = np.array(out[:-1], dtype=np.float64)
         info = dict(info)
         info.update(
             qos_reliability=qos.reliability,

@@ -18,9 +18,11 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from codesign_mb.adaptation.learned import PredictorStdFeature
+from codesign_mb.adaptation.planner import QosPlanner
 from codesign_mb.adaptation.rules import CovarianceTriggeredQos, PredictorReplica
 from codesign_mb.control.lqr import LqrController
 from codesign_mb.core.config import as_matrix
+from codesign_mb.estimation.belt_imm import BeltImmPredictor
 from codesign_mb.estimation.kalman import KalmanEstimator, steady_state_covariance
 from codesign_mb.estimation.predictor import DelayCompensatingPredictor
 from codesign_mb.plants.linear import LinearPlantSpec
@@ -246,9 +248,6 @@ def qos_planner(
     False``: the event-triggered rule); ``model_options`` override fields of the belt model
     read from the plant (give the robot's own).
     """
-    from codesign_mb.adaptation.planner import QosPlanner
-    from codesign_mb.estimation.belt_imm import BeltImmPredictor
-
     replica = BeltImmPredictor.from_env(env, model_options=model_options)
     return QosPlanner(
         replica,
