@@ -53,6 +53,15 @@ class _Step:
     carried: bool
     z: NDArray[np.float64] | None = None
     nis: float = math.nan
+    _moments_of: Any = None
+    _moments: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None
+
+    def moments(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Mean and covariance of the posterior mixture, computed once per posterior."""
+        if self._moments is None or self._moments_of is not self.posterior:
+            self._moments = _moments(*self.posterior)
+            self._moments_of = self.posterior
+        return self._moments
 
 
 class BeltImmPredictor:
@@ -208,12 +217,12 @@ class BeltImmPredictor:
     @property
     def state(self) -> NDArray[np.float64]:
         """The mixture's mean ``(o, w, b)`` at the current step, shape ``(9,)``."""
-        return _moments(*self._require().posterior)[0]
+        return self._require().moments()[0].copy()
 
     @property
     def covariance(self) -> NDArray[np.float64]:
         """The mixture's covariance (moment-matched), shape ``(9, 9)``."""
-        return _moments(*self._require().posterior)[1]
+        return self._require().moments()[1].copy()
 
     @property
     def mode_probabilities(self) -> dict[str, float]:
@@ -369,7 +378,7 @@ class BeltImmPredictor:
 
     def _output(self, plant_obs: NDArray[np.float64]) -> NDArray[np.float64]:
         out = np.array(plant_obs, dtype=float, copy=True)
-        mean, cov = _moments(*self._steps[-1].posterior)
+        mean, cov = self._steps[-1].moments()
         out[self._pos] = mean[:3]
         if self._vel is not None:
             out[self._vel] = mean[3:6]
