@@ -12,6 +12,12 @@ the LSTM, the previous action), and ``s`` is the per-dimension spread of the tra
 residuals. With no information (``f = 0``) the estimate is the stale observation itself, the
 "no estimator" baseline.
 
+When the packet carries the object's position only (the ``realistic`` scenario, whose
+plant's ``state_layout`` puts ``object_vel`` after the observation), an estimator built with
+``output_velocity`` also estimates the object's velocity and appends it there, as the
+model-based :class:`~codesign_mb.estimation.predictor.DelayCompensatingPredictor` does: its
+output has the plant's state layout, so a controller gets an estimated velocity.
+
 * :class:`MlpEstimator` is the paper's ``pi_e(y_t, zeta_t)``: memoryless.
 * :class:`LstmEstimator` runs an LSTM over the whole history of features.
 
@@ -62,6 +68,9 @@ class EstimatorFeatures:
         The age enters the network as ``zeta / age_scale``.
     use_action:
         Append the previous action ``u_{t-1}`` (zeros at ``t = 0``) to the features.
+    output_velocity:
+        Also estimate the object's velocity (3 entries, not in the observation) and append it
+        to the output, where the plant's ``state_layout`` puts ``object_vel``.
     """
 
     obs_dim: int
@@ -70,6 +79,7 @@ class EstimatorFeatures:
     remote_stop: int
     age_scale: float = 10.0
     use_action: bool = False
+    output_velocity: bool = False
 
     def __post_init__(self) -> None:
         if not 0 <= self.remote_start < self.remote_stop <= self.obs_dim:
@@ -79,6 +89,8 @@ class EstimatorFeatures:
             )
         if self.age_scale <= 0:
             raise ValueError(f"age_scale must be > 0, got {self.age_scale}")
+        if self.output_velocity and self.remote_stop != self.obs_dim:
+            raise ValueError("output_velocity needs the remote part at the end of the observation")
 
     @property
     def remote_slice(self) -> slice:
@@ -87,6 +99,32 @@ class EstimatorFeatures:
     @property
     def remote_dim(self) -> int:
         return self.remote_stop - self.remote_start
+
+    @property
+    def velocity_dim(self) -> int:
+        """Entries appended to the output: the estimated velocity (0 or 3)."""
+        return 3 if self.output_velocity else 0
+
+    @property
+    def out_dim(self) -> int:
+        """Entries the network predicts: the remote part's residual, then the velocity."""
+        return self.remote_dim + self.velocity_dim
+
+    @property
+    def target_slice(self) -> slice:
+        """Where the estimated entries sit in the output: the remote part and, with
+        ``output_velocity``, the appended velocity (contiguous: the remote part ends the
+        observation)."""
+        return slice(self.remote_start, self.remote_stop + self.velocity_dim)
+
+    def baseline(self, networked: NDArray) -> NDArray:
+        """What the residual is added to: ``y_t``, and zeros for the velocity (batch-wise)."""
+        networked = np.asarray(networked, dtype=np.float32)
+        y = networked[..., self.remote_slice]
+        if not self.velocity_dim:
+            return y
+        zeros = np.zeros((*y.shape[:-1], self.velocity_dim), dtype=np.float32)
+        return np.concatenate([y, zeros], axis=-1)
 
     @property
     def in_dim(self) -> int:
@@ -213,8 +251,11 @@ class LearnedEstimator:
         feats = self.features(observation, self._prev_action)
         with torch.no_grad():
             residual = self._residual(torch.as_tensor(feats)[None]).numpy().reshape(-1)
+        f = self.features
         out = observation[:-1].copy()
-        out[self.features.remote_slice] += residual
+        if f.velocity_dim:  # the velocity slot of the state layout, after the observation
+            out = np.concatenate([out, np.zeros(f.velocity_dim)])
+        out[f.target_slice] += residual
         return out
 
     def _net_config(self) -> dict[str, Any]:
@@ -259,7 +300,7 @@ class MlpEstimator(LearnedEstimator):
         """A fresh (untrained) estimator; weights initialised from ``seed``."""
         with torch.random.fork_rng(devices=[]):  # seeded init, global RNG left untouched
             torch.manual_seed(seed)
-            net = MlpEstimatorNet(features.in_dim, features.remote_dim, hidden)
+            net = MlpEstimatorNet(features.in_dim, features.out_dim, hidden)
         return cls(net, features)
 
     def _residual(self, feats: torch.Tensor) -> torch.Tensor:
@@ -286,7 +327,7 @@ class LstmEstimator(LearnedEstimator):
         """A fresh (untrained) estimator; weights initialised from ``seed``."""
         with torch.random.fork_rng(devices=[]):  # seeded init, global RNG left untouched
             torch.manual_seed(seed)
-            net = LstmEstimatorNet(features.in_dim, features.remote_dim, hidden, layers)
+            net = LstmEstimatorNet(features.in_dim, features.out_dim, hidden, layers)
         return cls(net, features)
 
     def _reset_memory(self) -> None:
@@ -320,11 +361,11 @@ def load_estimator(path: str | Path) -> LearnedEstimator:
         net_cfg = blob["net"]
         if cls is MlpEstimator:
             net: nn.Module = MlpEstimatorNet(
-                features.in_dim, features.remote_dim, tuple(net_cfg["hidden"])
+                features.in_dim, features.out_dim, tuple(net_cfg["hidden"])
             )
         else:
             net = LstmEstimatorNet(
-                features.in_dim, features.remote_dim, net_cfg["hidden"], net_cfg["layers"]
+                features.in_dim, features.out_dim, net_cfg["hidden"], net_cfg["layers"]
             )
         net.load_state_dict(blob["state_dict"])
     return cls(net, features)

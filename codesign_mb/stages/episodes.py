@@ -4,9 +4,11 @@ Episodes run through THE closed loop (:class:`~codesign_mb.rollout.ClosedLoop`) 
 plant behind a :class:`~codesign_mb.network.BernoulliLink` whose QoS comes from a policy,
 by default a :class:`RandomQos` drawing from the :class:`DelayDistribution` ``T`` of
 ``eq_control_estimation``. An :class:`EpisodeRecorder` observer keeps, per step, the networked
-observation ``(y_t, zeta_t)``, the previous action, the true remote state ``x_t``, the
-requested reliability and whether the episode succeeded. :func:`estimator_mse` scores any
-:class:`~codesign_mb.estimation.base.Estimator` on recorded episodes.
+observation ``(y_t, zeta_t)``, the previous action, the true remote state ``x_t`` (with the
+object's true velocity appended where the packet carries none, :func:`estimates_velocity`),
+the object's phase (:mod:`codesign_mb.plants.phases`), the requested reliability and whether
+the episode succeeded. :func:`estimator_mse` scores any
+:class:`~codesign_mb.estimation.base.Estimator` on recorded episodes, overall and per phase.
 """
 
 from __future__ import annotations
@@ -27,6 +29,7 @@ from codesign_mb.estimation.base import Estimator
 from codesign_mb.network.link import BernoulliLink
 from codesign_mb.network.qos import QosPolicy, QosRequest
 from codesign_mb.network.wrapper import LinkObservationWrapper
+from codesign_mb.plants.phases import NOT_SPAWNED, PHASES
 from codesign_mb.rollout.loop import ClosedLoop, Transition
 from codesign_mb.stages.training import stage_seeds
 
@@ -37,8 +40,10 @@ __all__ = [
     "RandomQos",
     "cached_episodes",
     "collect_episodes",
+    "estimates_velocity",
     "estimator_mse",
     "position_slice",
+    "velocity_slice",
 ]
 
 
@@ -96,7 +101,10 @@ class EpisodeData:
 
     ``networked[i][t]`` is the wrapped observation (plant layout with ``y_t``, then
     ``zeta_t``), ``prev_actions[i][t]`` the action applied before it (zeros at ``t = 0``),
-    ``truth[i][t]`` the true remote state ``x_t``, ``reliability[i][t]`` the requested ``q``.
+    ``truth[i][t]`` the true remote state ``x_t`` (then the object's true velocity, where the
+    packet carries none), ``reliability[i][t]`` the requested ``q``, ``phase[i][t]`` the
+    object's phase (an index into :data:`~codesign_mb.plants.phases.PHASES`; -1 before it
+    spawned or on a plant without phases).
     """
 
     networked: list[np.ndarray] = field(default_factory=list)
@@ -104,6 +112,7 @@ class EpisodeData:
     truth: list[np.ndarray] = field(default_factory=list)
     reliability: list[np.ndarray] = field(default_factory=list)
     success: list[bool] = field(default_factory=list)
+    phase: list[np.ndarray] = field(default_factory=list)
 
     def __len__(self) -> int:
         return len(self.networked)
@@ -113,7 +122,7 @@ class EpisodeData:
         return int(sum(len(x) for x in self.networked))
 
     def extend(self, other: EpisodeData) -> EpisodeData:
-        for name in ("networked", "prev_actions", "truth", "reliability", "success"):
+        for name in ("networked", "prev_actions", "truth", "reliability", "success", "phase"):
             getattr(self, name).extend(getattr(other, name))
         return self
 
@@ -130,18 +139,21 @@ class EpisodeData:
                 truth=np.concatenate(self.truth),
                 reliability=np.concatenate(self.reliability),
                 success=np.asarray(self.success, dtype=bool),
+                phase=np.concatenate(self.phase),
             )
 
     @classmethod
     def load(cls, path: str | Path) -> EpisodeData:
         with np.load(path) as z:
             cuts = np.cumsum(z["lengths"])[:-1]
+            phase = z["phase"] if "phase" in z else np.full(int(z["lengths"].sum()), NOT_SPAWNED)
             return cls(
                 networked=list(np.split(z["networked"], cuts)),
                 prev_actions=list(np.split(z["prev_actions"], cuts)),
                 truth=list(np.split(z["truth"], cuts)),
                 reliability=list(np.split(z["reliability"], cuts)),
                 success=[bool(s) for s in z["success"]],
+                phase=list(np.split(phase, cuts)),
             )
 
 
@@ -149,32 +161,46 @@ class EpisodeRecorder:
     """A :class:`~codesign_mb.rollout.loop.Transition` observer recording :class:`EpisodeData`.
 
     :meth:`start` takes the reset's networked observation and ``info``; every step appends
-    the next observation, the action that led to it, the true remote state and the requested
+    the next observation, the action that led to it, the true remote state (with
+    ``velocity``: then the object's true velocity, zero before it spawned, as the plant's
+    ``remote_true`` gives it when perceived), the object's phase and the requested
     reliability; :meth:`finish` appends the episode to ``data``.
     """
 
-    def __init__(self, action_dim: int) -> None:
+    def __init__(self, action_dim: int, *, velocity: bool = False) -> None:
         self.action_dim = int(action_dim)
+        self.velocity = bool(velocity)
         self.networked: list[NDArray[Any]] = []
         self.prev_actions: list[NDArray[np.float64]] = []
         self.truth: list[NDArray[np.float64]] = []
         self.reliability: list[float] = []
+        self.phase: list[int] = []
         self.success = False
 
     def start(self, observation: NDArray[Any], info: dict[str, Any]) -> None:
         """Begin an episode from the reset's networked observation and ``info``."""
         self.networked = [np.array(observation)]
         self.prev_actions = [np.zeros(self.action_dim)]
-        self.truth = [info["remote_true"]]
-        self.reliability = [info["qos_reliability"]]
+        self.truth, self.reliability, self.phase = [], [], []
+        self._record(info)
         self.success = bool(info.get("success", False))
 
     def __call__(self, step: Transition) -> None:
         self.networked.append(step.next_observation)
         self.prev_actions.append(step.action)
-        self.truth.append(step.info["remote_true"])
-        self.reliability.append(step.info["qos_reliability"])
+        self._record(step.info)
         self.success = self.success or bool(step.info.get("success", False))
+
+    def _record(self, info: dict[str, Any]) -> None:
+        phase = int(info.get("phase", NOT_SPAWNED))
+        truth = np.asarray(info["remote_true"], dtype=float)
+        if self.velocity:
+            spawned = phase != NOT_SPAWNED or "phase" not in info
+            velocity = np.asarray(info["object_vel"], dtype=float) if spawned else np.zeros(3)
+            truth = np.concatenate([truth, velocity])
+        self.truth.append(truth)
+        self.reliability.append(info["qos_reliability"])
+        self.phase.append(phase)
 
     def finish(self, data: EpisodeData) -> None:
         """Append the episode to ``data`` (float32 arrays, one row per step from the reset)."""
@@ -183,6 +209,7 @@ class EpisodeRecorder:
         data.truth.append(np.asarray(self.truth, dtype=np.float32))
         data.reliability.append(np.asarray(self.reliability, dtype=np.float32))
         data.success.append(self.success)
+        data.phase.append(np.asarray(self.phase, dtype=np.int8))
 
 
 def collect_episodes(
@@ -201,7 +228,9 @@ def collect_episodes(
     ``SeedSequence(seed)`` (:func:`~codesign_mb.stages.training.stage_seeds`).
     """
     env = LinkObservationWrapper(make_plant(plant), BernoulliLink(), qos_policy)
-    recorder = EpisodeRecorder(int(np.prod(env.action_space.shape)))
+    recorder = EpisodeRecorder(
+        int(np.prod(env.action_space.shape)), velocity=estimates_velocity(env)
+    )
     loop = ClosedLoop(env, behaviour, controller, observer=recorder, record=False)
     data = EpisodeData()
     for s in stage_seeds(seed, episodes):
@@ -216,48 +245,90 @@ def collect_episodes(
 
 
 def estimator_mse(
-    estimator: Any, data: EpisodeData, *, remote: slice, position: slice | None = None
+    estimator: Any,
+    data: EpisodeData,
+    *,
+    remote: slice,
+    position: slice | None = None,
+    velocity: slice | None = None,
 ) -> dict[str, float]:
     """Score any :class:`~codesign_mb.estimation.base.Estimator` on recorded episodes.
 
     Runs ``reset``/``estimate`` along each episode exactly as a rollout does and returns the
     mean squared error of the remote estimate over all steps (``mse``, summed over the remote
-    entries). With ``position`` (the ``object_pos`` slice of the plant observation) also the
-    object position's ``mse_position`` (m^2) and RMSE, overall and split into the steps where
-    the object rides the belt and where it is off it (more than 1 cm above its first height:
-    grasped and lifted), since the two phases have different dynamics.
+    entries of the observation). With ``position`` (the ``object_pos`` slice) also the object
+    position's ``mse_position`` (m^2) and RMSE; with ``velocity`` (the ``object_vel`` slice of
+    the plant's *state* layout: inside the remote part, or appended after the observation
+    where the packet carries none) the velocity's RMSE, for an estimator whose output has it.
+    Both are also given per phase of :data:`~codesign_mb.plants.phases.PHASES`
+    (``rmse_position_<phase>_m``, ``rmse_velocity_<phase>_mps``, ``steps_<phase>``): the
+    phases have different dynamics, and an error matters most while grasping.
     """
     sq, n = 0.0, 0
-    sq_pos = np.zeros(2)
-    n_pos = np.zeros(2)
-    for nets, prevs, truth in zip(data.networked, data.prev_actions, data.truth, strict=True):
-        nets64 = np.asarray(nets, dtype=np.float64)
-        estimates = [estimator.reset(nets64[0])]
-        for t in range(1, len(nets64)):
-            estimates.append(estimator.estimate(nets64[t], np.asarray(prevs[t], dtype=np.float64)))
-        est = np.asarray(estimates)
-        sq += float(np.sum((est[:, remote] - truth) ** 2))
-        n += len(nets64)
-        if position is not None:
-            true_pos = _position_truth(truth, remote, position)
-            err = np.sum((est[:, position] - true_pos) ** 2, axis=1)
-            off = true_pos[:, 2] > true_pos[0, 2] + 0.01
-            for i, mask in enumerate((~off, off)):
-                sq_pos[i] += float(err[mask].sum())
-                n_pos[i] += int(mask.sum())
-    out = {"mse": sq / max(n, 1)}
-    if position is not None:
-        out["mse_position"] = float(sq_pos.sum() / max(n, 1))
-        out["rmse_position_m"] = float(np.sqrt(out["mse_position"]))
-        for i, phase in enumerate(("on_belt", "off_belt")):
-            if n_pos[i]:
-                out[f"rmse_position_{phase}_m"] = float(np.sqrt(sq_pos[i] / n_pos[i]))
+    parts = {"position": position, "velocity": velocity}
+    sums = {name: np.zeros(len(PHASES) + 1) for name, where in parts.items() if where is not None}
+    counts = np.zeros(len(PHASES) + 1)
+    remote_dim = remote.stop - remote.start
+    phases = data.phase if len(data.phase) == len(data) else [None] * len(data)
+    for nets, prevs, truth, phase in zip(
+        data.networked, data.prev_actions, data.truth, phases, strict=True
+    ):
+        est = _estimates(estimator, nets, prevs)
+        sq += float(np.sum((est[:, remote] - truth[:, :remote_dim]) ** 2))
+        n += len(est)
+        labels = np.full(len(est), NOT_SPAWNED) if phase is None else np.asarray(phase)
+        masks = [np.ones(len(est), dtype=bool), *(labels == k for k in range(len(PHASES)))]
+        counts += [m.sum() for m in masks]
+        for name in list(sums):
+            where = parts[name]
+            assert where is not None
+            if est.shape[1] < where.stop:  # this estimator does not output it
+                del sums[name]
+                continue
+            cols = slice(where.start - remote.start, where.stop - remote.start)
+            err = np.sum((est[:, where] - truth[:, cols]) ** 2, axis=1)
+            sums[name] += [float(err[m].sum()) for m in masks]
+    return _mse_summary(sq / max(n, 1), sums, counts)
+
+
+def _estimates(estimator: Any, nets: np.ndarray, prevs: np.ndarray) -> NDArray[np.float64]:
+    """The estimator's outputs along one recorded episode, as a rollout calls it."""
+    nets64 = np.asarray(nets, dtype=np.float64)
+    estimates = [estimator.reset(nets64[0])]
+    for t in range(1, len(nets64)):
+        estimates.append(estimator.estimate(nets64[t], np.asarray(prevs[t], dtype=np.float64)))
+    return np.asarray(estimates)
+
+
+def _mse_summary(mse: float, sums: dict[str, np.ndarray], counts: np.ndarray) -> dict[str, float]:
+    out = {"mse": mse}
+    units = {"position": "m", "velocity": "mps"}
+    if "position" in sums:
+        out["mse_position"] = float(sums["position"][0] / max(counts[0], 1))
+    for name, total in sums.items():
+        out[f"rmse_{name}_{units[name]}"] = float(np.sqrt(total[0] / max(counts[0], 1)))
+        for k, phase in enumerate(PHASES, start=1):
+            if counts[k]:
+                out[f"rmse_{name}_{phase}_{units[name]}"] = float(np.sqrt(total[k] / counts[k]))
+    for k, phase in enumerate(PHASES, start=1):
+        out[f"steps_{phase}"] = int(counts[k])
     return out
 
 
-def _position_truth(truth: np.ndarray, remote: slice, position: slice) -> np.ndarray:
-    start = position.start - remote.start
-    return truth[:, start : start + (position.stop - position.start)]
+def estimates_velocity(env: Any) -> bool:
+    """Whether a controller of ``env`` reads an ``object_vel`` its packet does not carry (the
+    plant's ``state_layout`` has it, its observation does not): then an estimator estimates it."""
+    plant = env.unwrapped
+    state = getattr(plant, "state_layout", None) or {}
+    observed = getattr(plant, "observation_layout", None) or {}
+    return "object_vel" in state and "object_vel" not in observed
+
+
+def velocity_slice(env: Any) -> slice | None:
+    """The ``object_vel`` slice of a plant's state layout (``None`` without one)."""
+    plant = env.unwrapped
+    layout = getattr(plant, "state_layout", None) or getattr(plant, "observation_layout", None)
+    return (layout or {}).get("object_vel")
 
 
 def position_slice(env: Any) -> slice | None:

@@ -1,8 +1,9 @@
 """Fitting the learned estimators (MLP, LSTM) to recorded episodes: ``eq_control_estimation``.
 
 The networks of :mod:`codesign_mb.estimation.learned` are fitted in torch to the residual
-``x_t - y_t`` of :class:`~codesign_mb.stages.episodes.EpisodeData` (MSE in units of its
-training spread); stages B and D use it.
+``x_t - y_t`` (and, where the packet carries no velocity, to the object's true velocity) of
+:class:`~codesign_mb.stages.episodes.EpisodeData` (MSE in units of its training spread);
+stages B and D use it.
 """
 
 from __future__ import annotations
@@ -20,7 +21,7 @@ from codesign_mb.estimation.learned import (
     LstmEstimator,
     MlpEstimator,
 )
-from codesign_mb.stages.episodes import EpisodeData
+from codesign_mb.stages.episodes import EpisodeData, estimates_velocity
 from codesign_mb.stages.training import (
     BUFFER_CAP,
     EPOCHS_CAP,
@@ -54,7 +55,7 @@ def _arrays(estimator: LearnedEstimator, data: EpisodeData) -> tuple[list[np.nda
     feats, residuals = [], []
     for nets, prevs, truth in zip(data.networked, data.prev_actions, data.truth, strict=True):
         feats.append(f(nets, prevs))
-        residuals.append(truth - nets[:, f.remote_slice])
+        residuals.append(truth - f.baseline(nets))
     return feats, residuals
 
 
@@ -175,7 +176,12 @@ def _loss(net, feats, residuals, *, recurrent: bool) -> float:
 def new_estimator(
     kind: str, env: Any, *, hidden: Any, age_scale: float, seed: int
 ) -> LearnedEstimator:
-    """An untrained estimator of ``kind`` for the plant ``env``."""
+    """An untrained estimator of ``kind`` for the plant ``env``.
+
+    Where the plant's ``state_layout`` has an ``object_vel`` its observation lacks (the packet
+    carries the position only), the estimator also estimates the velocity
+    (:func:`estimates_velocity`).
+    """
     plant = env.unwrapped
     remote = plant.remote_slice
     features = EstimatorFeatures(
@@ -185,6 +191,7 @@ def new_estimator(
         remote_stop=int(remote.stop),
         age_scale=age_scale,
         use_action=kind == "lstm",
+        output_velocity=estimates_velocity(env),
     )
     if kind == "mlp":
         return MlpEstimator.create(features, hidden=tuple(hidden), seed=seed)

@@ -15,7 +15,14 @@ re-fitting (:mod:`~codesign_mb.stages.fitting`) on everything collected so far.
 
 Any :class:`~codesign_mb.estimation.base.Estimator` can be scored on the same held-out
 episodes with :func:`estimator_mse`, which is how the learned estimators are compared with the
-model-based :class:`~codesign_mb.estimation.predictor.DelayCompensatingPredictor`.
+model-based :class:`~codesign_mb.estimation.predictor.DelayCompensatingPredictor`: overall and
+per phase of the object (:mod:`codesign_mb.plants.phases`), in ``training.json``.
+
+The plant is any scenario's (``codesign train b --scenario realistic``: belt speeds drawn per
+episode, perception errors, the packet carrying the perceived position only). Where the packet
+has no velocity the estimators also estimate it and output the plant's ``state_layout``
+(:func:`~codesign_mb.stages.episodes.estimates_velocity`); ``training.json`` records both
+layouts, and tables skip a checkpoint trained on another layout.
 """
 
 from __future__ import annotations
@@ -38,8 +45,10 @@ from codesign_mb.stages.episodes import (
     RandomQos,
     cached_episodes,
     collect_episodes,
+    estimates_velocity,
     estimator_mse,
     position_slice,
+    velocity_slice,
 )
 from codesign_mb.stages.fitting import EstimatorTraining, fit_estimator, new_estimator
 from codesign_mb.stages.paths import portable_paths
@@ -173,7 +182,11 @@ def train_stage_b(
     started = time.perf_counter()
     probe = make_plant(config.plant)
     collect = _Collection(config, build("controller", config.controller, probe), work_dir)
-    remote, position = probe.unwrapped.remote_slice, position_slice(probe)
+    where = {
+        "remote": probe.unwrapped.remote_slice,
+        "position": position_slice(probe),
+        "velocity": velocity_slice(probe),
+    }
     train0 = collect("train_round0", config.train_episodes, config.seed + 10)
     val = collect("val", config.val_episodes, config.seed + 20)
     curves_path = work_dir / "curves.json"
@@ -187,8 +200,8 @@ def train_stage_b(
         )
         out_dir.mkdir(parents=True, exist_ok=True)
         estimator.save(out_dir / f"{kind}.pt")
-        results[kind] = estimator_mse(estimator, val, remote=remote, position=position)
-    results.update(_compare(config, probe, val, remote=remote, position=position))
+        results[kind] = estimator_mse(estimator, val, **where)
+    results.update(_compare(config, probe, val, where))
     meta = {
         "stage": "b",
         "command": command,
@@ -199,6 +212,7 @@ def train_stage_b(
         "wall_time_s": round(time.perf_counter() - started, 1),
         "held_out_mse": results,
         "held_out_episodes": len(val),
+        "layout": _layouts(probe),
         "package_version": package_version(),
         "config": to_mapping(config),
     }
@@ -270,8 +284,25 @@ def _train_estimator(
     return estimator
 
 
+def _layouts(probe: Any) -> dict[str, Any]:
+    """The plant's observation and state layouts (name -> [start, stop]) and whether the
+    estimators append the velocity the packet lacks."""
+    plant = probe.unwrapped
+
+    def spans(layout: dict[str, slice]) -> dict[str, list[int]]:
+        return {name: [int(s.start), int(s.stop)] for name, s in layout.items()}
+
+    observation = getattr(plant, "observation_layout", None) or {}
+    state = getattr(plant, "state_layout", None) or observation
+    return {
+        "observation": spans(observation),
+        "state": spans(state),
+        "estimates_velocity": estimates_velocity(probe),
+    }
+
+
 def _compare(
-    config: StageBConfig, probe: Any, val: EpisodeData, *, remote: slice, position: slice | None
+    config: StageBConfig, probe: Any, val: EpisodeData, where: dict[str, Any]
 ) -> dict[str, dict[str, Any]]:
     """The held-out MSE of the ``compare`` estimators (an unavailable one is reported)."""
     results: dict[str, dict[str, Any]] = {}
@@ -281,5 +312,5 @@ def _compare(
         except ImportError as exc:  # a part not written yet: report, do not fail the stage
             results[spec.kind] = {"error": f"unavailable: {exc}"}
             continue
-        results[spec.kind] = estimator_mse(baseline, val, remote=remote, position=position)
+        results[spec.kind] = estimator_mse(baseline, val, **where)
     return results

@@ -1,0 +1,145 @@
+"""Stage B on the ``realistic`` scenario: the packet without velocity, per-phase errors.
+
+A tiny stage B (scripted controller, a few short episodes) on the realistic plant: the
+estimators output the plant's state layout (the estimated velocity appended where the packet
+has none) and ``training.json`` reports their errors per phase of the object, which are
+recomputed here independently from the held-out episodes.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+import torch
+
+from codesign_mb.core.registry import ComponentSpec, PlantSpec, make_plant
+from codesign_mb.estimation.learned import EstimatorFeatures, MlpEstimator, load_estimator
+from codesign_mb.plants.phases import NOT_SPAWNED, PHASES
+from codesign_mb.plants.scenarios import scenario_options
+from codesign_mb.stages.episodes import EpisodeData
+from codesign_mb.stages.fitting import EstimatorTraining, fit_estimator
+from codesign_mb.stages.stage_b import StageBConfig, train_stage_b
+
+REALISTIC = PlantSpec("conveyor", {**scenario_options("realistic"), "horizon": 40})
+
+
+@pytest.fixture(scope="module")
+def realistic_run(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
+    root = tmp_path_factory.mktemp("stage_b_realistic")
+    config = StageBConfig(
+        plant=REALISTIC,
+        controller=ComponentSpec("scripted"),
+        train_episodes=3,
+        val_episodes=2,
+        dagger_rounds=0,
+        mlp_hidden=(16,),
+        lstm_hidden=8,
+        mlp=EstimatorTraining(epochs=2),
+        lstm=EstimatorTraining(epochs=2),
+    )
+    train_stage_b(config, out_dir=root / "out", work_dir=root / "work")
+    meta = json.loads((root / "out" / "training.json").read_text())
+    return {"root": root, "meta": meta, "val": EpisodeData.load(root / "work" / "val.npz")}
+
+
+def test_realistic_estimators_output_the_state_layout(realistic_run: dict[str, Any]) -> None:
+    """The packet has the position only: the output is the state layout, velocity appended."""
+    meta, root = realistic_run["meta"], realistic_run["root"]
+    env = make_plant(REALISTIC)
+    state, observed = env.state_layout, env.observation_layout
+    assert "object_vel" not in observed and meta["layout"]["estimates_velocity"] is True
+    assert meta["layout"]["state"]["object_vel"] == [state["object_vel"].start, 13]
+    networked = realistic_run["val"].networked[0].astype(float)
+    for kind in ("mlp", "lstm"):
+        est = load_estimator(root / "out" / f"{kind}.pt")
+        out = est.reset(networked[0])
+        assert out.shape == (max(s.stop for s in state.values()),)
+        # the non-remote entries pass through; the estimate = y + the network's residual
+        np.testing.assert_array_equal(out[:7], networked[0][:7])
+        x = torch.as_tensor(est.features(networked[0]))[None]
+        with torch.no_grad():
+            residual = (est.net(x)[0] if kind == "mlp" else est.net(x[None])[0][0, -1]).numpy()
+        np.testing.assert_allclose(out[7:10], networked[0][7:10] + residual[:3], atol=1e-5)
+        np.testing.assert_allclose(out[state["object_vel"]], residual[3:], atol=1e-6)
+    env.close()
+
+
+def test_realistic_per_phase_errors_match_an_independent_count(
+    realistic_run: dict[str, Any],
+) -> None:
+    """``training.json``'s per-phase RMSE = the RMSE over the steps of that recorded phase."""
+    val, root = realistic_run["val"], realistic_run["root"]
+    mlp = realistic_run["meta"]["held_out_mse"]["mlp"]
+    est = load_estimator(root / "out" / "mlp.pt")
+    err_pos, err_vel, phases = [], [], []
+    for nets, prevs, truth, phase in zip(
+        val.networked, val.prev_actions, val.truth, val.phase, strict=True
+    ):
+        nets = nets.astype(float)
+        outs = [est.reset(nets[0])] + [
+            est.estimate(nets[t], prevs[t].astype(float)) for t in range(1, len(nets))
+        ]
+        out = np.asarray(outs)
+        err_pos.append(np.sum((out[:, 7:10] - truth[:, :3]) ** 2, axis=1))
+        err_vel.append(np.sum((out[:, 10:13] - truth[:, 3:6]) ** 2, axis=1))
+        phases.append(phase)
+        # before the object spawned its true velocity is zero (as the plant's remote_true)
+        assert np.all(truth[phase == NOT_SPAWNED, 3:] == 0.0)
+    pos, vel, phase = map(np.concatenate, (err_pos, err_vel, phases))
+    assert sum(mlp[f"steps_{p}"] for p in PHASES) == int(np.sum(phase >= 0))
+    seen = 0
+    for k, name in enumerate(PHASES):
+        mask = phase == k
+        assert mlp[f"steps_{name}"] == int(mask.sum())
+        if mask.any():
+            seen += 1
+            assert mlp[f"rmse_position_{name}_m"] == pytest.approx(np.sqrt(pos[mask].mean()))
+            assert mlp[f"rmse_velocity_{name}_mps"] == pytest.approx(np.sqrt(vel[mask].mean()))
+    assert seen >= 2  # the scripted pick goes through the phases
+    assert mlp["rmse_position_m"] == pytest.approx(np.sqrt(pos.mean()))
+    compare = realistic_run["meta"]["held_out_mse"]
+    assert "rmse_velocity_mps" in compare["predictor"]  # the predictor appends one too
+    assert "rmse_velocity_mps" not in compare["none"]  # the stale packet has none
+
+
+def test_velocity_head_learns_an_unobserved_velocity() -> None:
+    """Ground truth: the velocity (not in the packet) is a function of an observed entry;
+    the appended head learns it far below its spread."""
+    rng = np.random.default_rng(0)
+    features = EstimatorFeatures(
+        obs_dim=4, action_dim=1, remote_start=1, remote_stop=4, output_velocity=True
+    )
+    est = MlpEstimator.create(features, hidden=(32, 32), seed=0)
+    data = EpisodeData()
+    for _ in range(20):
+        speed = rng.uniform(0.1, 0.6)
+        nets = np.column_stack([np.full(10, speed), rng.normal(size=(10, 3)), np.zeros(10)])
+        velocity = np.column_stack([np.zeros(10), np.full(10, speed), np.zeros(10)])
+        data.networked.append(nets.astype(np.float32))
+        data.prev_actions.append(np.zeros((10, 1), np.float32))
+        data.truth.append(np.column_stack([nets[:, 1:4], velocity]).astype(np.float32))
+        data.reliability.append(np.ones(10, np.float32))
+        data.success.append(True)
+        data.phase.append(np.zeros(10, np.int8))
+    fit_estimator(est, data, None, EstimatorTraining(epochs=150, batch_size=32), seed=0)
+    for speed in (0.15, 0.35, 0.55):
+        out = est.reset(np.array([speed, 0.1, -0.2, 0.3, 0.0]))
+        assert out.shape == (7,)
+        np.testing.assert_allclose(out[1:4], [0.1, -0.2, 0.3], atol=0.02)
+        assert out[5] == pytest.approx(speed, abs=0.03)
+
+
+def test_old_checkpoints_load_without_velocity(tmp_path: Path) -> None:
+    """A checkpoint written before ``output_velocity`` existed reads as without it."""
+    f = EstimatorFeatures(obs_dim=4, action_dim=1, remote_start=1, remote_stop=4)
+    path = MlpEstimator.create(f, hidden=(4,)).save(tmp_path / "mlp.pt")
+    blob = torch.load(path, weights_only=True)
+    del blob["features"]["output_velocity"]
+    torch.save(blob, path)
+    est = load_estimator(path)
+    assert est.features.output_velocity is False
+    assert est.reset(np.zeros(5)).shape == (4,)
