@@ -143,3 +143,61 @@ def test_old_checkpoints_load_without_velocity(tmp_path: Path) -> None:
     est = load_estimator(path)
     assert est.features.output_velocity is False
     assert est.reset(np.zeros(5)).shape == (4,)
+
+
+def test_fig_cn_learned_rows_from_realistic_checkpoints(realistic_run: dict[str, Any]) -> None:
+    """With estimators that read the realistic packet, Fig. 4 gets the learned curves: the
+    controller alone and with each estimator, beside the model-based ones."""
+    from codesign_mb.studies.fig_cn import FigCnConfig, learned_skip_reason, run_fig_cn
+
+    out = realistic_run["root"] / "out"
+    cfg = FigCnConfig(
+        trials=1,
+        workers=1,
+        delays=(2,),
+        belt_speeds_mps=(0.6,),
+        reliabilities=(),
+        estimators=("none",),
+        max_steps=6,
+        learned_controller=ComponentSpec("scripted"),  # a stand-in: no stage A on realistic yet
+        learned_estimators=(
+            ComponentSpec("mlp", str(out / "mlp.pt")),
+            ComponentSpec("lstm", str(out / "lstm.pt")),
+        ),
+    )
+    assert learned_skip_reason(cfg) is None
+    table = run_fig_cn(cfg)
+    curves = list(zip(table["pipeline"], table["estimator"], strict=True))
+    assert curves == [
+        ("model_based", "none"),
+        ("learned", "none"),
+        ("learned", "mlp"),
+        ("learned", "lstm"),
+    ]
+    assert table["trials"].eq(1).all() and table["latency_steps"].eq(2).all()
+
+
+def test_fig_cn_skips_learned_rows_with_a_reason(tmp_path: Path) -> None:
+    """The shipped checkpoints read the paper's packet (with velocity): on the realistic
+    plant the learned rows are skipped and the reason names them; a missing one likewise."""
+    from codesign_mb.studies.fig_cn import FigCnConfig, fig_cn_points, learned_skip_reason
+
+    shipped = FigCnConfig(delays=(0,), reliabilities=())
+    reason = learned_skip_reason(shipped)
+    assert reason is not None and "not for the realistic plant" in reason
+    assert "stage_b/mlp.pt" in reason
+    assert {labels["pipeline"] for labels, _ in fig_cn_points(shipped)} == {"model_based"}
+    gone = FigCnConfig(learned_estimators=(ComponentSpec("mlp", str(tmp_path / "no.pt")),))
+    assert "checkpoints missing" in str(learned_skip_reason(gone))
+    assert learned_skip_reason(FigCnConfig(learned=False)) == "not asked for (learned = false)"
+
+
+def test_belt_speed_of_a_point_overrides_the_scenario_range() -> None:
+    """Fig. 4's 0.2 and 0.6 m/s panels on the realistic scenario: the speed given is the
+    episodes' base speed (the scenario's per-episode range would otherwise replace it)."""
+    from codesign_mb.evaluation.evaluate import EvaluateConfig
+
+    cfg = EvaluateConfig(scenario="realistic", belt_speed_mps=0.6).env_config()
+    assert cfg.belt_speed_mps == 0.6 and cfg.belt_speed_range_mps == ()
+    kept = EvaluateConfig(scenario="realistic").env_config()
+    assert kept.belt_speed_range_mps == (0.1, 0.6)

@@ -148,12 +148,14 @@ def fig_cn_command(
     fresh: FreshOption = False,
     as_json: JsonOption = False,
 ) -> None:
-    """Fig. 4 (fig_cn), model-based: success vs delay and vs reliability, +/- predictor.
+    """Fig. 4 (fig_cn): success vs delay and vs reliability; MPC +/- predictor, and the
+    learned rows (stage-A controller alone, + MLP, + LSTM) when their checkpoints read the
+    plant (else skipped, with the reason printed).
 
     Writes OUT/fig_cn.parquet/.csv/.json (one row per point, with Wilson intervals) and
     OUT/fig_cn.png. Config file: top level or \\[fig_cn] (FigCnConfig fields).
     """
-    from codesign_mb.studies.fig_cn import FigCnConfig, run_fig_cn_study
+    from codesign_mb.studies.fig_cn import FigCnConfig, learned_skip_reason, run_fig_cn_study
 
     cfg = load_config(
         FigCnConfig,
@@ -172,6 +174,9 @@ def fig_cn_command(
         ),
         section="fig_cn",
     )
+    skipped = learned_skip_reason(cfg)
+    if skipped is not None and not as_json:
+        note(f"learned rows skipped: {skipped}")
     table, files = run_fig_cn_study(
         cfg,
         out,
@@ -192,6 +197,7 @@ def _fig_cn_rows(table: Any) -> list[dict[str, Any]]:
         row = {
             "sweep": r["sweep"],
             "belt m/s": r["belt_speed_mps"],
+            "pipeline": r.get("pipeline", ""),
             "estimator": r["estimator"],
             "tau": r["latency_steps"],
             "q": r["reliability"],

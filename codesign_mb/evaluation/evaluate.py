@@ -464,7 +464,9 @@ class EvaluateConfig:
     reliability, latency_steps:
         The QoS ``(q, tau)`` of the static policy.
     belt_speed_mps:
-        Belt speed (overrides ``env.belt_speed_mps``); ``None`` keeps the scenario's.
+        Belt speed (overrides ``env.belt_speed_mps``, and clears a scenario's per-episode
+        ``belt_speed_range_mps`` unless ``env`` sets one, so the speed given is the episodes'
+        base speed); ``None`` keeps the scenario's.
     trials, seed, workers, max_steps:
         As in :func:`evaluate`.
     scenario:
@@ -527,6 +529,8 @@ class EvaluateConfig:
         data = {**get_scenario(self.scenario).options, **self.env}
         if self.belt_speed_mps is not None:
             data["belt_speed_mps"] = float(self.belt_speed_mps)
+            if "belt_speed_range_mps" not in self.env:  # else the range, not the speed, counts
+                data["belt_speed_range_mps"] = ()
         return from_mapping(ConveyorConfig, data, where="env")
 
     def components(self) -> tuple[Factory, Factory, Any]:

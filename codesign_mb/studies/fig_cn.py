@@ -1,13 +1,18 @@
-"""The paper's Fig. 4 (``fig_cn``), model-based: task success under delay and loss.
+"""The paper's Fig. 4 (``fig_cn``): task success under delay and loss, learned and model-based.
 
 paper.tex Fig. ``fig_cn`` shows the success rate of the ideal controller versus a fixed
-delay, at belt speeds 0.2 and 0.6 m/s, with and without a QoS-aware state estimator. Here the
-ideal controller is the MPC (:mod:`codesign_mb.control.mpc`), the estimator the
-delay-compensating predictor (:mod:`codesign_mb.estimation.predictor`), "none" the stale
-observation used as is; a second sweep varies the i.i.d. reliability ``q`` instead of the
-delay. Every point is an :func:`~codesign_mb.evaluation.evaluate.evaluate` of ``trials``
-seeded episodes (the same episode seeds at every point, so the curves are paired), reported
-with its Wilson interval.
+delay, at belt speeds 0.2 and 0.6 m/s, with and without a QoS-aware state estimator. The
+model-based rows (``pipeline = "model_based"``): the ideal controller is the MPC
+(:mod:`codesign_mb.control.mpc`), the estimator the delay-compensating predictor
+(:mod:`codesign_mb.estimation.predictor`), "none" the stale observation used as is. The
+learned rows (``pipeline = "learned"``, the paper's): the stage-A controller alone (stale
+observation), with the stage-B MLP and with the LSTM estimator, when their checkpoints exist
+and read the plant's observation layout (else skipped, :func:`learned_skip_reason` says
+why). A second sweep varies the i.i.d. reliability ``q`` instead of the delay. Every point
+is an :func:`~codesign_mb.evaluation.evaluate.evaluate` of ``trials`` seeded episodes (the
+same episode seeds at every point, so the curves are paired), reported with its Wilson
+interval. The plant is the default scenario's with each panel's belt speed as the episodes'
+base speed.
 """
 
 from __future__ import annotations
@@ -20,8 +25,10 @@ from typing import Any
 
 import pandas as pd
 
+from codesign_mb.core import registry
 from codesign_mb.core.config import LATENCY_STEPS_CAP, check_range
 from codesign_mb.core.records import RECORDS_DIR, RecordStore
+from codesign_mb.core.registry import ComponentSpec, PlantSpec
 from codesign_mb.core.results import write_results
 from codesign_mb.evaluation.evaluate import (
     EvaluateConfig,
@@ -29,6 +36,7 @@ from codesign_mb.evaluation.evaluate import (
     run_jobs,
     summarize,
 )
+from codesign_mb.plants.scenarios import get_scenario
 from codesign_mb.studies.figures import (
     Styler,
     curve_label,
@@ -40,9 +48,19 @@ from codesign_mb.studies.figures import (
 )
 
 _ESTIMATORS = ("predictor", "none")
-"""Estimator kinds compared (no checkpoint needed)."""
+"""Model-based estimator kinds compared (no checkpoint needed)."""
 
-__all__ = ["FigCnConfig", "fig_cn_points", "plot_fig_cn", "run_fig_cn", "run_fig_cn_study"]
+_PLOT_LABELS = ("pipeline", "estimator")
+"""The curves' labels: colour per (pipeline, estimator), line style per pipeline."""
+
+__all__ = [
+    "FigCnConfig",
+    "fig_cn_points",
+    "learned_skip_reason",
+    "plot_fig_cn",
+    "run_fig_cn",
+    "run_fig_cn_study",
+]
 
 Progress = Callable[[Iterable[Any], int], Iterable[Any]]
 
@@ -65,7 +83,13 @@ class FigCnConfig:
     reliability_latency_steps:
         The latency of the loss sweep (the paper's robotics runs use one step).
     estimators:
-        Names in ``FIG_CN__ESTIMATORS`` to compare.
+        Model-based estimator kinds to compare (``predictor``, ``none``).
+    learned:
+        Add the learned rows: ``learned_controller`` alone (stale observation) and with each
+        of ``learned_estimators``; skipped, with the reason, when a checkpoint is missing or
+        was trained on another observation layout (:func:`learned_skip_reason`).
+    learned_controller, learned_estimators:
+        The stage-A controller and the stage-B estimators of the learned rows.
     controller, env, mpc, predictor:
         As in :class:`~codesign_mb.evaluation.evaluate.EvaluateConfig`. ``env`` defaults to
         ``terminate_on_success=True``: success is latched, so ending an episode at its success
@@ -82,6 +106,14 @@ class FigCnConfig:
     reliabilities: tuple[float, ...] = (1.0, 0.8, 0.5, 0.3, 0.2, 0.1, 0.05)
     reliability_latency_steps: int = 1
     estimators: tuple[str, ...] = ("predictor", "none")
+    learned: bool = True
+    learned_controller: ComponentSpec = field(
+        default_factory=lambda: ComponentSpec("sac", "checkpoints/stage_a/model.zip")
+    )
+    learned_estimators: tuple[ComponentSpec, ...] = (
+        ComponentSpec("mlp", "checkpoints/stage_b/mlp.pt"),
+        ComponentSpec("lstm", "checkpoints/stage_b/lstm.pt"),
+    )
     controller: str = "mpc"
     env: dict[str, Any] = field(default_factory=lambda: {"terminate_on_success": True})
     mpc: dict[str, Any] = field(default_factory=dict)
@@ -105,6 +137,12 @@ class FigCnConfig:
         for e in self.estimators:
             if e not in _ESTIMATORS:
                 raise ValueError(f"estimators must be in {', '.join(_ESTIMATORS)}, got {e!r}")
+        object.__setattr__(
+            self,
+            "learned_estimators",
+            tuple(_spec(e) for e in self.learned_estimators),
+        )
+        object.__setattr__(self, "learned_controller", _spec(self.learned_controller))
         check_range("delays", self.delays, cap=LATENCY_STEPS_CAP)
         check_range(
             "reliability_latency_steps",
@@ -128,36 +166,89 @@ class FigCnConfig:
         )
 
 
+def _spec(value: Any) -> ComponentSpec:
+    return value if isinstance(value, ComponentSpec) else ComponentSpec(**value)
+
+
+@dataclass(frozen=True)
+class _Row:
+    """One curve's components (what :func:`~codesign_mb.studies.table_cost` checks)."""
+
+    controller: ComponentSpec
+    estimator: ComponentSpec
+    qos: ComponentSpec = field(default_factory=lambda: ComponentSpec("static"))
+
+
+def _learned_rows(config: FigCnConfig) -> list[_Row]:
+    """The learned curves: the controller alone, then with each learned estimator."""
+    alone = _Row(config.learned_controller, ComponentSpec("none"))
+    return [alone, *(_Row(config.learned_controller, e) for e in config.learned_estimators)]
+
+
+def learned_skip_reason(config: FigCnConfig) -> str | None:
+    """Why the learned rows are left out (``None``: they are in): not asked for, a checkpoint
+    missing, or one trained on another observation layout than the figure's plant."""
+    from codesign_mb.studies.table_cost import incompatible_checkpoints, missing_checkpoints
+
+    if not config.learned:
+        return "not asked for (learned = false)"
+    rows = _learned_rows(config)
+    missing = [c for r in rows for c in missing_checkpoints(r)]
+    if missing:
+        return f"checkpoints missing: {', '.join(dict.fromkeys(missing))}"
+    base = config.base()
+    plant = PlantSpec("conveyor", {**get_scenario(base.scenario).options, **base.env})
+    wrong = [c for r in rows for c in incompatible_checkpoints(r, plant)]
+    if wrong:
+        return (
+            f"not for the {base.scenario} plant: {', '.join(dict.fromkeys(wrong))}; train "
+            f"them with `codesign train a|b --scenario {base.scenario}`"
+        )
+    return None
+
+
 def fig_cn_points(config: FigCnConfig) -> list[tuple[dict[str, Any], EvaluateConfig]]:
-    """The figure's points: ``(labels, EvaluateConfig)`` for the delay and the loss sweeps."""
+    """The figure's points: ``(labels, EvaluateConfig)`` for the delay and the loss sweeps.
+
+    Labels: ``sweep``, ``belt_speed_mps``, ``pipeline`` and ``estimator``. A learned point's
+    config keeps the model-based ``controller`` and ``estimator`` fields (they need no
+    checkpoint); :func:`run_fig_cn` builds its components from the labels.
+    """
+    curves: list[tuple[str, str]] = [("model_based", e) for e in config.estimators]
+    if learned_skip_reason(config) is None:
+        curves += [("learned", r.estimator.kind) for r in _learned_rows(config)]
     base = config.base()
     points: list[tuple[dict[str, Any], EvaluateConfig]] = []
     for speed in config.belt_speeds_mps:
-        for est in config.estimators:
-            predictor = dict(config.predictor) if est == "predictor" else {}
+        for pipeline, est in curves:
+            kind = est if pipeline == "model_based" else base.estimator
+            predictor = dict(config.predictor) if kind == "predictor" else {}
+            head = {"belt_speed_mps": speed, "pipeline": pipeline, "estimator": est}
+            at = replace(base, estimator=kind, belt_speed_mps=speed, predictor=predictor)
             for d in config.delays:
-                labels = {"sweep": "delay", "belt_speed_mps": speed, "estimator": est}
-                cfg = replace(
-                    base,
-                    estimator=est,
-                    belt_speed_mps=speed,
-                    reliability=1.0,
-                    latency_steps=int(d),
-                    predictor=predictor,
-                )
-                points.append((labels, cfg))
+                cfg = replace(at, reliability=1.0, latency_steps=int(d))
+                points.append(({"sweep": "delay", **head}, cfg))
             for q in config.reliabilities:
-                labels = {"sweep": "reliability", "belt_speed_mps": speed, "estimator": est}
                 cfg = replace(
-                    base,
-                    estimator=est,
-                    belt_speed_mps=speed,
-                    reliability=float(q),
-                    latency_steps=config.reliability_latency_steps,
-                    predictor=predictor,
+                    at, reliability=float(q), latency_steps=config.reliability_latency_steps
                 )
-                points.append((labels, cfg))
+                points.append(({"sweep": "reliability", **head}, cfg))
     return points
+
+
+def _components(
+    config: FigCnConfig, labels: dict[str, Any], cfg: EvaluateConfig
+) -> tuple[Any, Any, Any]:
+    """A point's ``(controller, estimator, qos)`` factories (learned ones from checkpoints)."""
+    controller, estimator, qos = cfg.components()
+    if labels.get("pipeline") != "learned":
+        return controller, estimator, qos
+    row = next(r for r in _learned_rows(config) if r.estimator.kind == labels["estimator"])
+    return (
+        registry.factory("controller", row.controller),
+        registry.factory("estimator", row.estimator),
+        qos,
+    )
 
 
 def run_fig_cn(
@@ -168,7 +259,8 @@ def run_fig_cn(
     ``store`` keeps every finished episode and gives back those of an earlier run
     (:func:`~codesign_mb.evaluation.evaluate.run_jobs`).
 
-    Columns: ``sweep`` (``"delay"`` or ``"reliability"``), ``belt_speed_mps``, ``estimator``,
+    Columns: ``sweep`` (``"delay"`` or ``"reliability"``), ``belt_speed_mps``, ``pipeline``
+    (``"model_based"`` or ``"learned"``), ``estimator``,
     ``latency_steps``, ``reliability``, then :func:`~codesign_mb.evaluation.evaluate.summarize`'s
     (``trials``, ``successes``, ``success_rate``, ``success_ci_low``, ``success_ci_high``,
     ``mean_age``, ``delivered_fraction``, ..., and with an MPC ``mpc_failures``: its failed
@@ -176,8 +268,8 @@ def run_fig_cn(
     """
     points = fig_cn_points(config)
     jobs = []
-    for _, cfg in points:
-        controller, estimator, qos = cfg.components()
+    for labels, cfg in points:
+        controller, estimator, qos = _components(config, labels, cfg)
         jobs.append((controller, estimator, qos, cfg.env_config(), cfg.trials, cfg.seed))
     total = sum(cfg.trials for _, cfg in points)
     stream: Iterator[tuple[int, dict[str, Any]]] = run_jobs(
@@ -211,7 +303,8 @@ def run_fig_cn_study(
 ) -> tuple[pd.DataFrame, dict[str, Path]]:
     """Run Fig. 4 (:func:`run_fig_cn`) and write it into ``out_dir``.
 
-    Writes ``fig_cn.{parquet,csv,json}`` (one row per point) and ``fig_cn.png``
+    Writes ``fig_cn.{parquet,csv,json}`` (one row per point; the JSON also says why the
+    learned rows were skipped, ``learned_rows_skipped``, ``None`` if they are in) and ``fig_cn.png``
     (:func:`plot_fig_cn`); returns the table and the files (``parquet``, ``csv``, ``json``,
     ``png``). Finished episodes are kept in ``<out_dir>/.records`` and reused by a rerun
     (``fresh``: none are).
@@ -219,8 +312,17 @@ def run_fig_cn_study(
     store = RecordStore(Path(out_dir) / RECORDS_DIR, fresh=fresh)
     with store.on_interrupt():
         table = run_fig_cn(config, progress=progress, store=store)
-    files = dict(write_results(out_dir, table=table, config=config, name="fig_cn"))
-    files["png"] = plot_fig_cn(table, Path(out_dir) / "fig_cn.png")
+    skipped = learned_skip_reason(config)
+    files = dict(
+        write_results(
+            out_dir,
+            table=table,
+            config=config,
+            name="fig_cn",
+            extra={"learned_rows_skipped": skipped},
+        )
+    )
+    files["png"] = plot_fig_cn(table, Path(out_dir) / "fig_cn.png", labels=_PLOT_LABELS)
     return table, files
 
 
