@@ -201,3 +201,16 @@ def test_belt_speed_of_a_point_overrides_the_scenario_range() -> None:
     assert cfg.belt_speed_mps == 0.6 and cfg.belt_speed_range_mps == ()
     kept = EvaluateConfig(scenario="realistic").env_config()
     assert kept.belt_speed_range_mps == (0.1, 0.6)
+
+
+def test_fig_cn_realistic_config_names_the_realistic_checkpoints() -> None:
+    """The shipped config of the learned Fig. 4 reads; its rows wait for their checkpoints."""
+    from codesign_mb.cli.common import load_config
+    from codesign_mb.studies.fig_cn import FigCnConfig, learned_skip_reason
+
+    path = Path(__file__).parents[1] / "configs" / "fig_cn_learned_realistic.toml"
+    cfg = load_config(FigCnConfig, path, {}, section="fig_cn")
+    assert [e.kind for e in cfg.learned_estimators] == ["mlp", "lstm"]
+    assert cfg.learned_controller.checkpoint == "checkpoints/stage_a_realistic/model.zip"
+    reason = learned_skip_reason(cfg)
+    assert reason is None or "stage_a_realistic" in reason or "stage_b_realistic" in reason

@@ -43,12 +43,16 @@ def serial_table(tmp_path_factory: pytest.TempPathFactory) -> pd.DataFrame:
 def test_pipelines_are_table_rows() -> None:
     rows = (*model_free_rows(), *model_based_rows(), *all_rows())
     assert set(conveyor.DEFAULT_PIPELINES) <= set(conveyor.PIPELINES)
+    named = set(conveyor.PIPELINE_ROW_NAMES.values())
     for name in conveyor.PIPELINES:
         kinds = conveyor.PIPELINE_KINDS[name]
+        if name in conveyor.PIPELINE_ROW_NAMES:  # picked by name: the row has its kinds
+            assert conveyor.pipeline_row(name).name == conveyor.PIPELINE_ROW_NAMES[name]
+            continue
         matches = [
             (r.controller, r.estimator, r.qos)
             for r in rows
-            if (r.controller.kind, r.estimator.kind, r.qos.kind) == kinds
+            if (r.controller.kind, r.estimator.kind, r.qos.kind) == kinds and r.name not in named
         ]
         row = conveyor.pipeline_row(name)
         assert all(m == (row.controller, row.estimator, row.qos) for m in matches), (
@@ -58,7 +62,10 @@ def test_pipelines_are_table_rows() -> None:
     assert rule.qos.options["threshold_m"] == TUNED  # resolved for the plant by run_trial
     static = conveyor.pipeline_row("model-free-static")
     assert static.qos.options["reliability"] == 1.0
-    assert conveyor.pipeline_row("model-free-codesign").qos.checkpoint
+    assert conveyor.pipeline_row("model-free-codesign").qos.checkpoint == (
+        "checkpoints/stage_d_model_free/qos"
+    )
+    assert conveyor.pipeline_row("hybrid-codesign").qos.checkpoint == "checkpoints/stage_d/qos"
 
 
 def test_conveyor_grid_serial(serial_table: pd.DataFrame) -> None:

@@ -144,9 +144,10 @@ def test_all_pipeline_covers_the_grid() -> None:
     assert ("sac", "predictor", "static") in pairs and ("mpc", "mlp", "static") in pairs
     assert ("sac", "none", "learned") in pairs  # the paper's "no estimator, dynamic QoS"
     learned = {r.name: r.qos.checkpoint for r in rows if r.qos.kind == "learned"}
-    assert learned["SAC + MLP, SAC QoS"] == "checkpoints/stage_d/qos"
+    assert learned["SAC + MLP, hybrid SAC QoS"] == "checkpoints/stage_d/qos"
+    assert learned["SAC + MLP, model-free SAC QoS"] == "checkpoints/stage_d_model_free/qos"
     assert learned["MPC + predictor, SAC QoS"] == "checkpoints/stage_c_mpc"
-    assert {stack_of(r) for r in rows} == {"model-free", "model-based", "mixed"}
+    assert {stack_of(r) for r in rows} == {"model-free", "hybrid", "model-based", "mixed"}
 
 
 # -- training cost -----------------------------------------------------------------------------

@@ -29,6 +29,7 @@ from codesign_mb.core.results import atomic_write
 from codesign_mb.network.qos import QosRequest
 
 __all__ = [
+    "HYBRID_FEATURES",
     "QOS_FEATURES",
     "ElapsedTimeFeature",
     "LearnedQosPolicy",
@@ -160,6 +161,10 @@ class PredictorStdFeature:
             out.append(t / self.horizon)
         return np.array(out)
 
+
+HYBRID_FEATURES = ("predictor_std",)
+"""Feature kinds computed by a model-based replica at the edge: a policy reading them is a
+*hybrid* (the others, ``held_history`` and ``elapsed_time``, need no model: model-free)."""
 
 QOS_FEATURES = registry.kinds("qos_feature")
 """Feature kinds of the component registry, each built as ``factory(env, **options)``.

@@ -103,11 +103,12 @@ def stage_config(
     steps: int | None,
     estimator: str | None,
     scenario: str | None = None,
+    qos_features: str | None = None,
 ) -> Any:
     """The stage's config: its section of ``config_file``, then the command-line overrides.
 
     ``--scenario`` first (the plant becomes that scenario's conveyor), then the ``--set``
-    assignments, then ``--seed``, ``--steps`` and ``--estimator``.
+    assignments, then ``--seed``, ``--steps``, ``--estimator`` and ``--qos-features``.
     """
     overrides: dict[str, Any] = {}
     if scenario is not None:
@@ -127,6 +128,18 @@ def stage_config(
         overrides["estimator.kind"] = estimator
         if estimator in ("none", "predictor"):
             overrides["estimator.checkpoint"] = None
+    if qos_features is not None:
+        if stage not in ("c", "d"):
+            raise ValueError("--qos-features applies to stages c and d only")
+        from codesign_mb.adaptation.learned import QOS_FEATURES
+
+        if qos_features != "none" and qos_features not in QOS_FEATURES:
+            raise ValueError(
+                f"--qos-features must be none or one of {', '.join(QOS_FEATURES)}, "
+                f"got {qos_features!r}"
+            )
+        value = None if qos_features == "none" else qos_features
+        overrides["features" if stage == "c" else "qos.features"] = value
     cfg: Any = load_config(_config_class(stage), config_file, {}, section=stage)
     if stage == "a" and steps is not None:  # the warm-up's SAC updates count against --steps
         overrides.setdefault("critic_warmup_steps", min(cfg.critic_warmup_steps, steps))
@@ -198,6 +211,17 @@ def train(
             "\\[default: the config's, mlp]",
         ),
     ] = None,
+    qos_features: Annotated[
+        str | None,
+        typer.Option(
+            "--qos-features",
+            help="Stages c, d: the QoS policy's extra inputs beyond (y, zeta). Model-free: "
+            "none, held_history (elapsed time, held-position differences, lift), elapsed_time; "
+            "hybrid: predictor_std (a Kalman predictor replica at the edge). Stage d checks it "
+            "against the stage-C policy's. \\[default: the config's, none]",
+            show_default=False,
+        ),
+    ] = None,
     scenario: Annotated[
         str | None,
         typer.Option(
@@ -258,6 +282,7 @@ def train(
         steps=steps,
         estimator=estimator,
         scenario=scenario,
+        qos_features=qos_features,
     )
     out_dir = out or default_out(stage, cfg)
     work = work_dir or RUNS / "train" / out_dir.name

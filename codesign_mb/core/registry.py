@@ -28,6 +28,9 @@ qos        ``age_rule``       ``adaptation.rules.AgeTriggeredQos``
 qos        ``learned``        ``adaptation.learned.LearnedQosPolicy`` (``checkpoint``: folder)
 qos_feat.  ``elapsed_time``   ``adaptation.learned.ElapsedTimeFeature`` (``t / T``)
 qos_feat.  ``predictor_std``  ``adaptation.learned.PredictorStdFeature`` on a predictor replica
+                              (hybrid: a model-based replica at the edge)
+qos_feat.  ``held_history``   ``adaptation.model_free_features.HeldHistoryFeature`` (model-free:
+                              ``t / T``, held-position differences, lift, from ``(y, zeta)``)
 plant      ``conveyor``       ``plants.conveyor.ConveyorPickPlace`` (``ConveyorConfig`` options)
 plant      ``toy``            ``plants.toy.ToyConveyor`` (``ToyConveyorConfig`` options)
 allocator  ``greedy``         ``wifi.allocators.GreedyEdfAllocator`` (the paper's, sec. 5)
@@ -160,6 +163,9 @@ KINDS: dict[str, dict[str, Kind]] = {
     },
     "qos_feature": {
         "elapsed_time": Kind("codesign_mb.adaptation.learned:ElapsedTimeFeature.from_env"),
+        "held_history": Kind(
+            "codesign_mb.adaptation.model_free_features:HeldHistoryFeature.from_env"
+        ),
         "predictor_std": Kind("codesign_mb.rollout.compose:predictor_std_feature"),
     },
     "plant": {

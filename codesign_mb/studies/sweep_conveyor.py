@@ -64,6 +64,8 @@ from codesign_mb.plants.scenarios import SCENARIOS as CONVEYOR_SCENARIOS
 from codesign_mb.plants.scenarios import scenario_options
 from codesign_mb.studies.fig_wifi import CHANNEL_PRESETS, CapacityConfig, PipelineConfig, run_point
 from codesign_mb.studies.table_rows import (
+    HYBRID_CODESIGN_ROW,
+    MODEL_FREE_CODESIGN_ROW,
     all_rows,
     model_based_rows,
     model_free_rows,
@@ -92,6 +94,7 @@ PIPELINE_KINDS: dict[str, tuple[str, str, str]] = {
     "model-based-no-estimator": ("mpc", "none", "rule"),
     "model-free-static": ("sac", "mlp", "static"),
     "model-free-codesign": ("sac", "mlp", "learned"),
+    "hybrid-codesign": ("sac", "mlp", "learned"),
     "sac-mlp-rule": ("sac", "mlp", "rule"),
     "model-free-no-estimator": ("sac", "none", "learned"),
     "sac-predictor-static": ("sac", "predictor", "static"),
@@ -103,7 +106,15 @@ PIPELINE_KINDS: dict[str, tuple[str, str, str]] = {
 The covariance rule's threshold is the one tuned for the sweep's conveyor scenario at its own
 belt speed (:func:`~codesign_mb.studies.table_rows.row_for_plant`, the default when it has
 none), held fixed across the grid: a grid point is the same design on another plant.
-``model-free-codesign`` is SAC (stage A) + MLP + the learned QoS policy (stage D)."""
+``model-free-codesign`` is SAC (stage A) + MLP + the learned QoS policy (stage D) that reads
+``(y, zeta)`` and ``held_history``; ``hybrid-codesign`` the shipped one, whose QoS policy
+reads ``predictor_std`` (:data:`PIPELINE_ROW_NAMES`)."""
+
+PIPELINE_ROW_NAMES: dict[str, str] = {
+    "model-free-codesign": MODEL_FREE_CODESIGN_ROW,
+    "hybrid-codesign": HYBRID_CODESIGN_ROW,
+}
+"""Pipelines whose kinds several table rows share: their row, by name."""
 
 
 def _kinds(row: Any) -> tuple[str, str, str]:
@@ -126,9 +137,10 @@ DEFAULT_PIPELINES: tuple[str, ...] = (
     "model-based-static",
     "model-based-rule",
     "model-free-static",
-    "model-free-codesign",
+    "hybrid-codesign",
 )
-"""Pipelines swept when none are configured: both stacks, static QoS and co-design."""
+"""Pipelines swept when none are configured: both stacks, static QoS and co-design (the
+learned one: the shipped hybrid until the model-free one is trained)."""
 
 TIMING_COLUMNS: tuple[str, ...] = ("mpc_solve_cpu_ms_median", "cpu_time_s", "wall_time_s")
 """Columns that measure time: they vary from run to run, the rest is a function of the seed."""
@@ -269,11 +281,13 @@ class SharedBernoulliLink:
 def pipeline_row(pipeline: str) -> Any:
     """The :class:`~codesign_mb.studies.table_rows.TableRow` of a sweep pipeline name.
 
-    The first table row with the pipeline's kinds (rows with the same kinds have the same
-    components: the tests check it).
+    The row named in :data:`PIPELINE_ROW_NAMES`, else the first table row with the pipeline's
+    kinds (other rows with the same kinds have the same components: the tests check it).
     """
     if pipeline not in PIPELINES:
         raise ValueError(f"pipeline must be one of {', '.join(PIPELINES)}, got {pipeline!r}")
+    if pipeline in PIPELINE_ROW_NAMES:
+        return next(row for row in _table_rows() if row.name == PIPELINE_ROW_NAMES[pipeline])
     kinds = PIPELINE_KINDS[pipeline]
     return next(row for row in _table_rows() if _kinds(row) == kinds)
 

@@ -111,13 +111,18 @@ def reference_stacks(rows: tuple[TableRow, ...]) -> list[tuple[ComponentSpec, Co
     one is mixed), in row order, without a controller's no-estimator stack when that
     controller also comes with an estimator (the reference is the full stack: SAC + MLP for
     the model-free pipeline, MPC + predictor for the model-based one, both for ``all``).
+    Stacks of the same kinds (e.g. the hybrid and the model-free co-designs' own stage-D
+    MLPs) share the first one's references, which are named by the kinds alone.
     """
     pure = [r for r in rows if stack_of(r) != "mixed"] or list(rows)
     stacks: dict[tuple[str, str], tuple[ComponentSpec, ComponentSpec]] = {}
+    labels: set[str] = set()
     for r in pure:
-        stacks.setdefault(
-            (_spec_key(r.controller), _spec_key(r.estimator)), (r.controller, r.estimator)
-        )
+        key = (_spec_key(r.controller), _spec_key(r.estimator))
+        label = stack_label(r.controller, r.estimator)
+        if key not in stacks and label not in labels:
+            stacks[key] = (r.controller, r.estimator)
+            labels.add(label)
     with_estimator = {c for (c, _), (_, e) in stacks.items() if e.kind != "none"}
     return [
         (c, e) for (ck, _), (c, e) in stacks.items() if e.kind != "none" or ck not in with_estimator
