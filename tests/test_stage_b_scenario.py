@@ -214,3 +214,41 @@ def test_fig_cn_realistic_config_names_the_realistic_checkpoints() -> None:
     assert cfg.learned_controller.checkpoint == "checkpoints/stage_a_realistic/model.zip"
     reason = learned_skip_reason(cfg)
     assert reason is None or "stage_a_realistic" in reason or "stage_b_realistic" in reason
+
+
+def test_ideal_control_gives_the_true_velocity_the_packet_lacks() -> None:
+    """Ideal control on the realistic plant: the controller gets the state layout, with the
+    object's true position and velocity (zero before it spawned)."""
+    from codesign_mb.network.link import BernoulliLink
+    from codesign_mb.network.wrapper import LinkObservationWrapper
+    from codesign_mb.rollout.loop import ClosedLoop
+    from codesign_mb.stages.episodes import DelayDistribution, RandomQos
+
+    seen: list[tuple[np.ndarray, dict[str, Any]]] = []
+
+    class Spy:
+        def reset(self, *, seed: int | None = None) -> None:
+            return None
+
+        def act(self, state: np.ndarray) -> np.ndarray:
+            seen.append((state.copy(), dict(loop.info)))
+            return np.zeros(4)
+
+    env = LinkObservationWrapper(
+        make_plant(PlantSpec("conveyor", {**REALISTIC.options, "horizon": 15})),
+        BernoulliLink(),
+        RandomQos(DelayDistribution()),
+    )
+    loop = ClosedLoop(env, None, Spy(), record=False)
+    loop.reset(seed=3)
+    while not loop.done:
+        loop.step()
+    phases = set()
+    for state, info in seen:
+        assert state.shape == (13,)
+        np.testing.assert_array_equal(state[7:10], info["remote_true"])
+        spawned = info["phase"] != NOT_SPAWNED
+        phases.add(spawned)
+        np.testing.assert_array_equal(state[10:13], info["object_vel"] if spawned else 0.0)
+    assert True in phases
+    env.close()

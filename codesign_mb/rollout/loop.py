@@ -22,12 +22,38 @@ from numpy.typing import NDArray
 from codesign_mb.control.base import Controller
 from codesign_mb.estimation.base import Estimator
 from codesign_mb.network.wrapper import LinkObservationWrapper
+from codesign_mb.plants.phases import NOT_SPAWNED
 from codesign_mb.rollout.object_errors import ObjectErrors
 
-__all__ = ["ClosedLoop", "SharedChannelLike", "Transition", "rollout", "rollout_shared"]
+__all__ = [
+    "ClosedLoop",
+    "SharedChannelLike",
+    "Transition",
+    "packet_lacks_velocity",
+    "rollout",
+    "rollout_shared",
+    "true_velocity",
+]
 
 _RECORDED = ("qos_reliability", "qos_latency_steps", "qos_cost", "delivered", "age")
 _recorded = operator.itemgetter(*_RECORDED)
+
+
+def true_velocity(info: dict[str, Any]) -> NDArray[np.float64]:
+    """The object's true velocity from a plant's ``info``: zero before it spawned (as the
+    plant's ``remote_true`` gives it when the velocity is perceived)."""
+    if info.get("phase", 0) == NOT_SPAWNED:
+        return np.zeros(3)
+    return np.asarray(info["object_vel"], dtype=float)
+
+
+def packet_lacks_velocity(env: Any) -> bool:
+    """Whether ``env``'s ``state_layout`` has an ``object_vel`` its observation (the packet)
+    does not: a controller reads a velocity that must be estimated (or, ideally, given)."""
+    plant = env.unwrapped
+    state = getattr(plant, "state_layout", None) or {}
+    observed = getattr(plant, "observation_layout", None) or {}
+    return "object_vel" in state and "object_vel" not in observed
 
 
 @dataclass(frozen=True, slots=True)
@@ -61,7 +87,9 @@ class ClosedLoop:
         The plant behind its link (:class:`LinkObservationWrapper`).
     estimator:
         An :class:`Estimator`; ``None`` runs *ideal control*: the controller is given the
-        plant's observation with the true remote state (the paper's stage A).
+        plant's observation with the true remote state (the paper's stage A), and, where the
+        plant's ``state_layout`` has an ``object_vel`` its packet lacks (the ``realistic``
+        scenario), the object's true velocity there (:func:`true_velocity`).
     controller:
         A :class:`Controller`.
     observer:
@@ -85,6 +113,7 @@ class ClosedLoop:
         self.observer = observer
         self.recording = record
         self._remote = env.remote_slice
+        self._true_velocity = packet_lacks_velocity(env)
         self.t = 0
         self.done = True
         self.observation: NDArray[Any] | None = None
@@ -115,6 +144,8 @@ class ClosedLoop:
         if self.estimator is None:  # ideal control: the true remote state (a copy: obs is kept)
             state = np.array(obs[:-1], dtype=float)
             state[self._remote] = info["remote_true"]
+            if self._true_velocity:  # the state layout's velocity, which no packet carries
+                state = np.concatenate([state, true_velocity(info)])
             return state
         if action is None:
             return np.asarray(self.estimator.reset(obs))

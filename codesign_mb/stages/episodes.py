@@ -30,7 +30,12 @@ from codesign_mb.network.link import BernoulliLink
 from codesign_mb.network.qos import QosPolicy, QosRequest
 from codesign_mb.network.wrapper import LinkObservationWrapper
 from codesign_mb.plants.phases import NOT_SPAWNED, PHASES
-from codesign_mb.rollout.loop import ClosedLoop, Transition
+from codesign_mb.rollout.loop import (
+    ClosedLoop,
+    Transition,
+    packet_lacks_velocity,
+    true_velocity,
+)
 from codesign_mb.stages.training import stage_seeds
 
 __all__ = [
@@ -192,15 +197,12 @@ class EpisodeRecorder:
         self.success = self.success or bool(step.info.get("success", False))
 
     def _record(self, info: dict[str, Any]) -> None:
-        phase = int(info.get("phase", NOT_SPAWNED))
         truth = np.asarray(info["remote_true"], dtype=float)
         if self.velocity:
-            spawned = phase != NOT_SPAWNED or "phase" not in info
-            velocity = np.asarray(info["object_vel"], dtype=float) if spawned else np.zeros(3)
-            truth = np.concatenate([truth, velocity])
+            truth = np.concatenate([truth, true_velocity(info)])
         self.truth.append(truth)
         self.reliability.append(info["qos_reliability"])
-        self.phase.append(phase)
+        self.phase.append(int(info.get("phase", NOT_SPAWNED)))
 
     def finish(self, data: EpisodeData) -> None:
         """Append the episode to ``data`` (float32 arrays, one row per step from the reset)."""
@@ -318,10 +320,7 @@ def _mse_summary(mse: float, sums: dict[str, np.ndarray], counts: np.ndarray) ->
 def estimates_velocity(env: Any) -> bool:
     """Whether a controller of ``env`` reads an ``object_vel`` its packet does not carry (the
     plant's ``state_layout`` has it, its observation does not): then an estimator estimates it."""
-    plant = env.unwrapped
-    state = getattr(plant, "state_layout", None) or {}
-    observed = getattr(plant, "observation_layout", None) or {}
-    return "object_vel" in state and "object_vel" not in observed
+    return packet_lacks_velocity(env)
 
 
 def velocity_slice(env: Any) -> slice | None:
