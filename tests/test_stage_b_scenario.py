@@ -252,3 +252,23 @@ def test_ideal_control_gives_the_true_velocity_the_packet_lacks() -> None:
         np.testing.assert_array_equal(state[10:13], info["object_vel"] if spawned else 0.0)
     assert True in phases
     env.close()
+
+
+def test_no_estimator_with_nominal_velocity_fills_the_state_layout() -> None:
+    """Fig. 4's learned "controller alone": the stale packet, and where it has no velocity
+    the nominal belt velocity in the state layout's slot (what the MPC assumes too)."""
+    from codesign_mb.core.registry import build
+
+    realistic = make_plant(REALISTIC)
+    networked = np.arange(11.0)
+    alone = build("estimator", ComponentSpec("none", options={"nominal_velocity": True}), realistic)
+    out = alone.reset(networked)
+    np.testing.assert_array_equal(out[:10], networked[:10])
+    np.testing.assert_array_equal(out[realistic.state_layout["object_vel"]], [0.0, 0.35, 0.0])
+    plain = build("estimator", ComponentSpec("none"), realistic)
+    np.testing.assert_array_equal(plain.reset(networked), networked[:10])
+    paper = make_plant(PlantSpec("conveyor", scenario_options("paper")))
+    full = build("estimator", ComponentSpec("none", options={"nominal_velocity": True}), paper)
+    np.testing.assert_array_equal(full.reset(np.arange(14.0)), np.arange(13.0))  # perceived
+    realistic.close()
+    paper.close()

@@ -4,8 +4,10 @@
 stage  what                                                        default output (``runs/``)
 =====  ==========================================================  ===========================
 a      SAC ideal controller (from demonstrations, oracle link)    checkpoints/stage_a
-b      MLP + LSTM estimators under the delay distribution          checkpoints/stage_b
-c      SAC QoS policy for a controller/estimator pair              checkpoints/stage_c_<estimator>
+b      MLP + LSTM estimators under the delay distribution (per      checkpoints/stage_b
+       phase errors; velocity estimated where the packet has none)
+c      SAC QoS policy for a controller/estimator pair (inputs:     checkpoints/stage_c_<estimator>
+       (y, zeta), + --qos-features: model-free or hybrid)
 d      synthesis: estimator under the learned QoS, QoS re-trained  checkpoints/stage_d
 =====  ==========================================================  ===========================
 

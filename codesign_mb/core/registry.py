@@ -139,7 +139,7 @@ KINDS: dict[str, dict[str, Kind]] = {
         "toy_pick": Kind("codesign_mb.control.scripted:ToyPickController.from_env", takes_env=True),
     },
     "estimator": {
-        "none": Kind("codesign_mb.estimation.base:PassThroughEstimator"),
+        "none": Kind("codesign_mb.estimation.base:PassThroughEstimator.from_env", takes_env=True),
         "mlp": Kind("codesign_mb.estimation.learned:load_estimator", checkpoint_keyword="path"),
         "lstm": Kind("codesign_mb.estimation.learned:load_estimator", checkpoint_keyword="path"),
         "predictor": Kind(

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Protocol, runtime_checkable
+from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 from numpy.typing import NDArray
@@ -43,12 +43,41 @@ class Estimator(Protocol):
 
 
 class PassThroughEstimator:
-    """No estimation (kind ``none``): the stale observation is used as if it were current."""
+    """No estimation (kind ``none``): the stale observation is used as if it were current.
+
+    With ``nominal_velocity`` (3 numbers) that is appended to it: for a plant whose packet
+    carries no velocity, where its ``state_layout`` puts ``object_vel``, so a controller that
+    reads the state layout (a learned one) gets what the robot assumes without estimation, the
+    nominal belt velocity (:meth:`from_env`); the MPC assumes the same when the slot is absent.
+    """
+
+    def __init__(self, nominal_velocity: Any = None) -> None:
+        self.nominal_velocity = (
+            None if nominal_velocity is None else np.asarray(nominal_velocity, float).reshape(3)
+        )
+
+    @classmethod
+    def from_env(cls, env: Any, *, nominal_velocity: bool = False) -> PassThroughEstimator:
+        """For a plant: with ``nominal_velocity``, its nominal belt velocity is appended when
+        its ``state_layout`` has an ``object_vel`` its observation lacks (else nothing is)."""
+        plant = env.unwrapped
+        state = getattr(plant, "state_layout", None) or {}
+        observed = getattr(plant, "observation_layout", None) or {}
+        lacks = "object_vel" in state and "object_vel" not in observed
+        if nominal_velocity and lacks:
+            return cls(np.asarray(plant.belt_velocity, dtype=float))
+        return cls()
 
     def reset(self, observation: NDArray[np.float64]) -> NDArray[np.float64]:
-        return split_networked_observation(observation)[0]
+        return self._output(observation)
 
     def estimate(
         self, observation: NDArray[np.float64], action: NDArray[np.float64]
     ) -> NDArray[np.float64]:
-        return split_networked_observation(observation)[0]
+        return self._output(observation)
+
+    def _output(self, observation: NDArray[np.float64]) -> NDArray[np.float64]:
+        held = split_networked_observation(observation)[0]
+        if self.nominal_velocity is None:
+            return held
+        return np.concatenate([held, self.nominal_velocity])

@@ -72,9 +72,12 @@ class StageBConfig:
     plant:
         The plant.
     controller:
-        The ideal controller driving the rollouts (stage A's SAC by default).
+        The ideal controller driving the rollouts (stage A's SAC by default; on the
+        ``realistic`` scenario: ``checkpoints/stage_a_realistic/model.zip``, which reads the
+        state layout, velocity included, given by ideal control or the estimators).
     delays:
-        The QoS distribution ``T`` (``eq_control_estimation``).
+        The QoS distribution ``T`` (``eq_control_estimation``): per-episode reliability and
+        per-packet latency, both uniform (the paper's recipe).
     kinds:
         Estimators to train: ``"mlp"`` and/or ``"lstm"``.
     train_episodes, val_episodes:

@@ -50,6 +50,9 @@ from codesign_mb.studies.figures import (
 _ESTIMATORS = ("predictor", "none")
 """Model-based estimator kinds compared (no checkpoint needed)."""
 
+_NOMINAL = {"nominal_velocity": True}
+"""The learned controller alone reads the state layout: the packet, the nominal velocity."""
+
 _PLOT_LABELS = ("pipeline", "estimator")
 """The curves' labels: colour per (pipeline, estimator), line style per pipeline."""
 
@@ -180,8 +183,9 @@ class _Row:
 
 
 def _learned_rows(config: FigCnConfig) -> list[_Row]:
-    """The learned curves: the controller alone, then with each learned estimator."""
-    alone = _Row(config.learned_controller, ComponentSpec("none"))
+    """The learned curves: the controller alone (the stale packet; where it has no velocity,
+    the nominal belt velocity in the state layout's slot), then with each learned estimator."""
+    alone = _Row(config.learned_controller, ComponentSpec("none", options=_NOMINAL))
     return [alone, *(_Row(config.learned_controller, e) for e in config.learned_estimators)]
 
 
