@@ -79,9 +79,15 @@ def test_cli_knows_every_scenario_and_rejects_unknown_ones() -> None:
         EvaluateConfig(scenario="fast")
     with pytest.raises(ValueError, match="unknown scenario"):
         TableConfig(scenario="fast")
-    # the scenario first, then the env table and the belt speed on top of it
+    # the scenario first, then the env table and the belt speed on top of it (the episodes'
+    # base speed: the scenario's per-episode range is cleared, unless env sets one)
     cfg = EvaluateConfig(scenario="realistic", env={"horizon": 50}, belt_speed_mps=0.3)
-    assert cfg.env_config() == scenario_config("realistic", horizon=50, belt_speed_mps=0.3)
+    assert cfg.env_config() == scenario_config(
+        "realistic", horizon=50, belt_speed_mps=0.3, belt_speed_range_mps=()
+    )
+    ranged = {"horizon": 50, "belt_speed_range_mps": (0.2, 0.4)}
+    cfg = EvaluateConfig(scenario="realistic", env=ranged, belt_speed_mps=0.3)
+    assert cfg.env_config().belt_speed_range_mps == (0.2, 0.4)
     plants = TableConfig(scenario="realistic", pipeline="model-based").table_plants()
     assert [p.label for p in plants] == ["realistic"]
     assert from_mapping(ConveyorConfig, plants[0].options) == scenario_config("realistic")

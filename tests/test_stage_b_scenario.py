@@ -190,6 +190,8 @@ def test_fig_cn_skips_learned_rows_with_a_reason(tmp_path: Path) -> None:
     gone = FigCnConfig(learned_estimators=(ComponentSpec("mlp", str(tmp_path / "no.pt")),))
     assert "checkpoints missing" in str(learned_skip_reason(gone))
     assert learned_skip_reason(FigCnConfig(learned=False)) == "not asked for (learned = false)"
+    with pytest.raises(ValueError, match="distinct kinds of mlp, lstm"):
+        FigCnConfig(learned_estimators=(ComponentSpec("mlp", "a.pt"), ComponentSpec("mlp", "b")))
 
 
 def test_belt_speed_of_a_point_overrides_the_scenario_range() -> None:

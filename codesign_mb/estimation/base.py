@@ -60,11 +60,13 @@ class PassThroughEstimator:
     def from_env(cls, env: Any, *, nominal_velocity: bool = False) -> PassThroughEstimator:
         """For a plant: with ``nominal_velocity``, its nominal belt velocity is appended when
         its ``state_layout`` has an ``object_vel`` its observation lacks (else nothing is)."""
+        if not nominal_velocity:
+            return cls()
         plant = env.unwrapped
         state = getattr(plant, "state_layout", None) or {}
         observed = getattr(plant, "observation_layout", None) or {}
         lacks = "object_vel" in state and "object_vel" not in observed
-        if nominal_velocity and lacks:
+        if lacks:
             return cls(np.asarray(plant.belt_velocity, dtype=float))
         return cls()
 

@@ -146,6 +146,9 @@ class FigCnConfig:
             tuple(_spec(e) for e in self.learned_estimators),
         )
         object.__setattr__(self, "learned_controller", _spec(self.learned_controller))
+        kinds = [e.kind for e in self.learned_estimators]
+        if len(set(kinds)) != len(kinds) or not set(kinds) <= {"mlp", "lstm"}:
+            raise ValueError(f"learned_estimators must be distinct kinds of mlp, lstm, got {kinds}")
         check_range("delays", self.delays, cap=LATENCY_STEPS_CAP)
         check_range(
             "reliability_latency_steps",
