@@ -127,3 +127,35 @@ def test_cli_qos_features_option() -> None:
         stage_config("b", None, qos_features="held_history", **kw)
     with pytest.raises(ValueError, match="must be none or one of"):
         stage_config("c", None, qos_features="kalman", **kw)
+
+
+def test_stage_c_trains_a_model_free_qos_policy(tmp_path: Path) -> None:
+    """``codesign train c --qos-features held_history`` on the toy plant: the policy records
+    its features, is rebuilt with them, and its row is model-free."""
+    from codesign_mb.adaptation.learned import LearnedQosPolicy
+    from codesign_mb.stages.dual_ascent import DualAscent
+    from codesign_mb.stages.stage_c import StageCConfig, train_stage_c
+    from codesign_mb.stages.training import SacSpec
+
+    toy = PlantSpec("toy", {"horizon": 30})
+    config = StageCConfig(
+        plant=toy,
+        controller=ComponentSpec("toy_pick"),
+        estimator=ComponentSpec("none"),
+        features="held_history",
+        sac=SacSpec(net_arch=(16, 16), buffer_size=1_000, batch_size=16, learning_starts=30),
+        total_steps=100,
+        chunk_steps=100,
+        eval_episodes=0,
+        dual=DualAscent(every_episodes=1),
+    )
+    train_stage_c(config, out_dir=tmp_path / "c", work_dir=tmp_path / "work")
+    assert LearnedQosPolicy.read_meta(tmp_path / "c")["features"]["kind"] == "held_history"
+    env = make_plant(toy)
+    policy = LearnedQosPolicy.from_env(env, tmp_path / "c")
+    assert isinstance(policy.features, HeldHistoryFeature)
+    assert policy.interface.feature_dim == HeldHistoryFeature.dim
+    policy.reset()
+    assert 0.0 <= policy.request(np.zeros(6), 0).reliability <= 1.0
+    qos = ComponentSpec("learned", str(tmp_path / "c"))
+    assert qos_features_stack(qos) == "model-free"
