@@ -235,9 +235,12 @@ def test_cli_evaluate_writes_table_and_summary(tmp_path) -> None:
     for name in ("evaluate.parquet", "evaluate.csv", "evaluate.json", "evaluate_summary.json"):
         assert (out / name).is_file()
     table = pd.read_parquet(out / "evaluate.parquet")
-    # q = 0.8 asked on every step with a detection at the edge, nothing on the others
+    # q = 0.8 asked on every step with a detection at the edge, nothing on the others; the
+    # per-step record's request follows the detection one step later (rollout's columns
+    # qos_reliability and perceived), so per episode they agree to within one step
     expected = 0.8 * table["perceived_fraction"].mean()
-    assert summary["mean_requested_reliability"] == pytest.approx(expected)
+    one_step = 0.8 / table["steps"].min()
+    assert abs(summary["mean_requested_reliability"] - expected) <= one_step + 1e-9
     assert 0.0 < summary["mean_requested_reliability"] <= 0.8
     assert len(table) == 2 and table["steps"].eq(20).all()
     assert json.loads((out / "evaluate_summary.json").read_text())["trials"] == 2
