@@ -347,3 +347,21 @@ def test_mpc_failures_are_summed_into_the_summary_and_its_markdown(
     assert with_mpc.split(" | ")[column] == "9"
     assert without.split(" | ")[column] == ""
     assert "MPC failures" not in markdown_table(summary.iloc[1:])  # no MPC, no column
+
+
+def test_several_root_seeds_pool_the_episodes_of_each_seed() -> None:
+    toy, none = ComponentSpec("toy_pick"), ComponentSpec("none")
+    rows = (TableRow("q=0.3", toy, none, ComponentSpec("static", options={"reliability": 0.3})),)
+    plants = (TablePlant("toy", "toy", {"horizon": 30, "belt_speed_mps": 0.3}),)
+    pooled, episodes = run_table(TableConfig(rows=rows, plants=plants, trials=4, seeds=(0, 5)))
+    alone = [run_table(TableConfig(rows=rows, plants=plants, trials=4, seed=s)) for s in (0, 5)]
+    assert len(episodes) == 8 and sorted(set(episodes["root_seed"])) == [0, 5]
+    for (summary, eps), seed in zip(alone, (0, 5), strict=True):  # the same episodes, per seed
+        mine = episodes[episodes["root_seed"] == seed]
+        assert sorted(mine["seed"]) == sorted(eps["seed"])
+        assert mine["success"].sum() == eps["success"].sum() == summary["successes"].iloc[0]
+    assert pooled["successes"].iloc[0] == sum(s["successes"].iloc[0] for s, _ in alone)
+    rates = [100 * s["success_rate"].iloc[0] for s, _ in alone]
+    assert pooled["success_by_seed"].iloc[0] == f"0: {rates[0]:.0f} %, 5: {rates[1]:.0f} %"
+    with pytest.raises(ValueError, match="seeds must be distinct"):
+        TableConfig(rows=rows, plants=plants, seeds=(1, 1))

@@ -32,7 +32,9 @@ from codesign_mb.cli.common import (
 
 __all__ = ["paper_command", "readme_command", "register"]
 
-_STUDY_NAMES = "lqg, table_realistic, table_variable, table_paper, fig_cn, fig_wifi, figures"
+_STUDY_NAMES = (
+    "lqg, table_realistic, table_variable, table_model_free, table_paper, fig_cn, fig_wifi, figures"
+)
 """The names of :data:`codesign_mb.studies.paper.STUDIES` (``--help`` imports no study)."""
 
 ReadmeOption = Annotated[
@@ -58,6 +60,13 @@ def paper_command(
     ] = 100,
     realistic_trials: Annotated[
         int, typer.Option("--realistic-trials", help="Episodes per row of the realistic table.")
+    ] = 200,
+    model_free_trials: Annotated[
+        int,
+        typer.Option(
+            "--model-free-trials",
+            help="Episodes per row and evaluation seed of Table I (table_model_free).",
+        ),
     ] = 200,
     fig_cn_trials: Annotated[
         int, typer.Option("--fig-cn-trials", help="Episodes per point of Fig. 4.")
@@ -107,6 +116,7 @@ def paper_command(
             {
                 "trials": trials,
                 "realistic_trials": realistic_trials,
+                "model_free_trials": model_free_trials,
                 "fig_cn_trials": fig_cn_trials,
                 "wifi_trials": wifi_trials,
                 "lqg_episodes": lqg_episodes,

@@ -103,6 +103,18 @@ def table_command(
         int, typer.Option("--trials", "-n", help="Episodes per row and plant.")
     ] = 100,
     seed: Annotated[int, typer.Option("--seed", help="Root seed of the episodes.")] = 0,
+    seeds: Annotated[
+        str | None,
+        typer.Option(
+            "--seeds",
+            help=(
+                "Several root seeds instead of --seed, comma separated (0,1,2: three "
+                "evaluation seeds): --trials episodes from each, pooled per row, each "
+                "seed's success rate beside the pooled one."
+            ),
+            show_default=False,
+        ),
+    ] = None,
     workers: Annotated[
         int,
         typer.Option("--workers", "-j", help="Worker processes, shared by all rows and plants."),
@@ -144,6 +156,7 @@ def table_command(
                 "scenario": scenario,
                 "trials": trials,
                 "seed": seed,
+                "seeds": _seed_list(seeds),
                 "workers": workers,
                 "on_missing": on_missing,
                 "references": references,
@@ -172,6 +185,16 @@ def table_command(
         emit(result.summary[list(SUMMARY_COLUMNS)], as_json=True)
     else:  # a Markdown table stays readable in a narrow terminal
         typer.echo(markdown_table(result.summary), nl=False)
+
+
+def _seed_list(text: str | None) -> tuple[int, ...] | None:
+    """``"0,1,2"`` -> ``(0, 1, 2)``; ``None`` stays ``None`` (``--seeds`` not given)."""
+    if text is None:
+        return None
+    try:
+        return tuple(int(x) for x in text.split(",") if x.strip())
+    except ValueError:
+        raise ValueError(f"seeds must look like 0,1,2, got {text!r}") from None
 
 
 @contextlib.contextmanager

@@ -11,6 +11,9 @@ own subfolder of the results folder ``OUT``:
     :func:`~codesign_mb.studies.table_figures.run_table_study` with the model-based rows and
     their reference rows on that scenario (``codesign table --scenario NAME --pipeline
     model-based``): ``tab_p``, ``tab_p_episodes``, ``tab_p.md``, ``fig_pareto.png``, Fig. 5.
+``table_model_free/``
+    The paper's Table I (``--scenario paper --pipeline model-free``): its learned rows and their
+    references, pooled over three evaluation seeds (:data:`POOLED_SEEDS`; ``--seeds``).
 ``table_paper/``
     The same with every row, learned ones included (``--scenario paper --pipeline all``; the
     learned checkpoints were trained on the paper scenario only).
@@ -69,6 +72,7 @@ from codesign_mb.core.seeds import seed_set
 __all__ = [
     "FIG_WIFI_GRID",
     "MANIFEST",
+    "POOLED_SEEDS",
     "STUDIES",
     "STUDY_FILE",
     "TABLE_STUDIES",
@@ -83,9 +87,14 @@ __all__ = [
 TABLE_STUDIES: dict[str, tuple[str, str]] = {
     "table_realistic": ("realistic", "model-based"),
     "table_variable": ("variable", "model-based"),
+    "table_model_free": ("paper", "model-free"),
     "table_paper": ("paper", "all"),
 }
-"""Table study -> (scenario, pipeline). Learned checkpoints exist for ``paper`` only."""
+"""Table study -> (scenario, pipeline). The learned rows' checkpoints are the paper scenario's."""
+
+POOLED_SEEDS: dict[str, int] = {"table_model_free": 3}
+"""Table study -> how many evaluation root seeds it pools (the set's root and the next ones):
+Table I, whose learned rows vary from one evaluation seed to the next."""
 
 STUDIES: tuple[str, ...] = ("lqg", *TABLE_STUDIES, "fig_cn", "fig_wifi", "figures")
 """Every study of the run, in run order (``figures`` renders the others, so it comes last)."""
@@ -135,6 +144,8 @@ class PaperConfig:
     realistic_trials:
         Episodes per row of the ``realistic`` table (the benchmark's scenario, whose ``blind``
         and ``oracle`` references are read at 200 episodes).
+    model_free_trials:
+        Episodes per row and evaluation seed of Table I (``table_model_free``).
     fig_cn_trials:
         Episodes per point of Fig. 4 (64 points).
     wifi_trials:
@@ -156,6 +167,7 @@ class PaperConfig:
 
     trials: int = 100
     realistic_trials: int = 200
+    model_free_trials: int = 200
     fig_cn_trials: int = 100
     wifi_trials: int = 5
     lqg_episodes: int = 8
@@ -167,7 +179,14 @@ class PaperConfig:
     force: bool = False
 
     def __post_init__(self) -> None:
-        numbers = ("trials", "realistic_trials", "fig_cn_trials", "wifi_trials", "lqg_episodes")
+        numbers = (
+            "trials",
+            "realistic_trials",
+            "model_free_trials",
+            "fig_cn_trials",
+            "wifi_trials",
+            "lqg_episodes",
+        )
         for name in (*numbers, "workers"):
             value = getattr(self, name)
             if name == "workers" and value is None:
@@ -208,8 +227,12 @@ def study_settings(name: str, config: PaperConfig) -> dict[str, Any]:
     elif name in TABLE_STUDIES:
         scenario, pipeline = TABLE_STUDIES[name]
         trials = config.realistic_trials if scenario == "realistic" else config.trials
+        if name in POOLED_SEEDS:
+            trials = config.model_free_trials
         settings = {"scenario": scenario, "pipeline": pipeline, "trials": trials}
         settings.update(_SMOKE["table"] if smoke else {}, seed=seed)
+        if name in POOLED_SEEDS:
+            settings["root_seeds"] = [seed + k for k in range(POOLED_SEEDS[name])]
     elif name == "fig_cn":
         settings = {"trials": config.fig_cn_trials, "seed": seed}
         settings.update(_SMOKE["fig_cn"] if smoke else {})
@@ -228,6 +251,8 @@ def study_command(name: str, settings: Mapping[str, Any]) -> str:
         extra = f" --horizon {s['horizon']}" if "horizon" in s else ""
         return f"codesign demo --scenario lqg -n {s['episodes']}{extra} {seed}"
     if name in TABLE_STUDIES:
+        if s.get("root_seeds"):
+            seed = "--seeds " + ",".join(str(k) for k in s["root_seeds"])
         return (
             f"codesign table --scenario {s['scenario']} --pipeline {s['pipeline']} "
             f"-n {s['trials']} {seed}"
@@ -274,6 +299,7 @@ def _run_table(
         pipeline=settings["pipeline"],
         trials=settings["trials"],
         seed=settings["seed"],
+        seeds=tuple(settings.get("root_seeds", ())),
         workers=workers,
     )
     run_table_study(cfg, out, progress=progress, command=study_command(name, settings))

@@ -54,6 +54,7 @@ FIGURES: dict[str, dict[str, str]] = {
         name: {"fig_pareto.png": f"fig_pareto_{scenario}.png"}
         for name, (scenario, _) in TABLE_STUDIES.items()
     },
+    "table_model_free": {"fig_pareto.png": "fig_pareto_model_free.png"},
     "table_paper": {"fig_pareto.png": "fig_pareto_paper.png", "fig_lat.png": "fig_lat_paper.png"},
     "fig_cn": {"fig_cn.png": "fig_cn.png"},
     "fig_wifi": {"fig_wifi.png": "fig_wifi.png"},
@@ -76,6 +77,7 @@ _TABLE_COLUMNS = (
     "paper_mean_reliability",
     "pareto",
     "rule_threshold_m",
+    "success_by_seed",
     "mean_time_to_grasp_s",
     *(f"failures_{reason}" for reason in FAILURE_REASONS),
     *(f"est_error_mm_{phase}" for phase in PHASES),

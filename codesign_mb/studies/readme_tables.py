@@ -203,7 +203,8 @@ def table_section(study: Study, figures_url: str) -> str:
         else:
             cells += [
                 name,
-                f"{pct(r['success_rate'])} {ci(r['success_ci_low'], r['success_ci_high'])}",
+                f"{pct(r['success_rate'])} {ci(r['success_ci_low'], r['success_ci_high'])}"
+                + (f" (by seed {r['success_by_seed']})" if r.get("success_by_seed") else ""),
                 pct(r.get("mean_requested_reliability")),
                 pct(r.get("delivered_fraction")),
             ]
@@ -216,7 +217,13 @@ def table_section(study: Study, figures_url: str) -> str:
     what = _TABLE_TITLES.get(settings["pipeline"], f"the {settings['pipeline']} rows")
     title = (
         f"**Scenario `{settings['scenario']}`: {what}** (`{study['command']}`, "
-        f"{_seeds(study)}, {_count(settings['trials'], 'episode')} per row). Reference rows "
+        f"{_seeds(study)}, {_count(settings['trials'], 'episode')} per row"
+        + (
+            f" and evaluation seed, pooled over root seeds {settings['root_seeds']}"
+            if settings.get("root_seeds")
+            else ""
+        )
+        + "). Reference rows "
         "in italics: blind (q = 0), oracle (q = 1, tau = 0), static (q = 1, tau = 1), random (each "
         "packet sent with the named row's average requested reliability):"
     )
@@ -375,6 +382,7 @@ SECTIONS: dict[str, Callable[[Study, str], str]] = {
     "lqg": lqg_section,
     "table_realistic": table_section,
     "table_variable": table_section,
+    "table_model_free": table_section,
     "table_paper": table_section,
     "fig_cn": fig_cn_section,
     "fig_wifi": fig_wifi_section,

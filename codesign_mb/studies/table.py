@@ -157,6 +157,10 @@ class TableConfig:
         Episodes per row and plant (the same seeds for every row and plant).
     seed:
         Root seed of the episodes.
+    seeds:
+        Several root seeds instead of ``seed``: ``trials`` episodes from each, pooled per row
+        (its interval is over all of them) with each seed's success rate in
+        ``success_by_seed`` (e.g. ``(0, 1, 2)``: three evaluation seeds; ``()``: ``seed``).
     workers:
         Worker processes, shared by all rows and plants.
     timeline_row:
@@ -180,6 +184,7 @@ class TableConfig:
     pipeline: str = "model-free"
     trials: int = 100
     seed: int = 0
+    seeds: tuple[int, ...] = ()
     workers: int = 1
     timeline_row: str = ""
     best_min_success: float = 0.98
@@ -198,6 +203,11 @@ class TableConfig:
         check_range("trials", self.trials, cap=EPISODES_CAP)
         check_range("workers", self.workers, cap=WORKERS_CAP)
         check_range("seed", self.seed, ge=0, cap=SEED_CAP)
+        object.__setattr__(self, "seeds", tuple(int(s) for s in self.seeds))
+        for s in self.seeds:
+            check_range("seeds", s, ge=0, cap=SEED_CAP)
+        if len(set(self.seeds)) != len(self.seeds):
+            raise ValueError(f"seeds must be distinct, got {self.seeds}")
         if not 0.0 <= self.best_min_success <= 1.0:
             raise ValueError(f"best_min_success must be in [0, 1], got {self.best_min_success}")
         if self.on_missing not in ("skip", "error"):
@@ -226,6 +236,10 @@ class TableConfig:
         labels = [p.label for p in self.table_plants()]
         if len(set(labels)) != len(labels):
             raise ValueError(f"plant labels must be unique, got {labels}")
+
+    def root_seeds(self) -> tuple[int, ...]:
+        """The root seeds the episodes come from: ``seeds``, else ``(seed,)``."""
+        return self.seeds or (self.seed,)
 
     def table_rows(self) -> tuple[TableRow, ...]:
         return self.rows or PIPELINES[self.pipeline]()
@@ -493,6 +507,8 @@ def _run_cells(
     keys = [cell_key(plant.label, row) for plant, row in cells]
     unique = list(dict.fromkeys(keys))
     first = {key: cells[keys.index(key)] for key in unique}
+    roots = config.root_seeds()
+    cells_run = [(first[key], root) for key in unique for root in roots]
     jobs = [
         (
             timed_factory("controller", row.controller),
@@ -500,17 +516,17 @@ def _run_cells(
             timed_factory("qos", row.qos),
             plant_factory(plant.spec),
             config.trials,
-            config.seed,
+            root,
         )
-        for plant, row in (first[key] for key in unique)
+        for (plant, row), root in cells_run
     ]
-    results: list[list[dict[str, Any]]] = [[] for _ in jobs]
+    results: list[list[dict[str, Any]]] = [[] for _ in unique]
     if jobs:
         done = run_jobs(jobs, workers=config.workers, store=store)
         if progress is not None:
             done = progress(done, total=len(jobs) * config.trials, description=description)
-        for j, episode in done:
-            results[j].append(episode)
+        for j, episode in done:  # a cell's episodes pooled over the root seeds
+            results[j // len(roots)].append({**episode, "root_seed": roots[j % len(roots)]})
     tables = [rows_to_table(r) for r in results]
     return {
         (plant.label, row.name): tables[unique.index(key)]

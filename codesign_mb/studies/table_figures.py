@@ -68,6 +68,7 @@ SUMMARY_COLUMNS: tuple[str, ...] = (
     "paper_mean_reliability",
     "mpc_failures",
     "rule_threshold_m",
+    "success_by_seed",
     *PHASE_COLUMNS,
 )
 """The summary columns ``codesign table --json`` prints (with the estimation error and NEES per
@@ -336,7 +337,8 @@ def _markdown_cells(r: pd.Series, with_mpc: bool, paper: str) -> list[str]:
         str(r["plant"]),
         _row_cell(r),
         f"{_pct(r['success_rate'])} "
-        f"[{100 * r['success_ci_low']:.1f}, {100 * r['success_ci_high']:.1f}]",
+        f"[{100 * r['success_ci_low']:.1f}, {100 * r['success_ci_high']:.1f}]"
+        + (f" (by seed {r['success_by_seed']})" if r.get("success_by_seed") else ""),
         _pct(r["mean_requested_reliability"]),
         _pct(r["delivered_fraction"]),
         cost,
