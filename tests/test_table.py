@@ -365,3 +365,17 @@ def test_several_root_seeds_pool_the_episodes_of_each_seed() -> None:
     assert pooled["success_by_seed"].iloc[0] == f"0: {rates[0]:.0f} %, 5: {rates[1]:.0f} %"
     with pytest.raises(ValueError, match="seeds must be distinct"):
         TableConfig(rows=rows, plants=plants, seeds=(1, 1))
+
+
+def test_learned_realistic_config_compares_with_the_planner_row_as_the_table_runs_it() -> None:
+    from codesign_mb.cli.common import load_config
+    from codesign_mb.studies.table_rows import PLANNER_ROW, model_based_rows
+
+    root = Path(__file__).resolve().parents[1]
+    cfg = load_config(TableConfig, root / "configs" / "table_learned_realistic.toml", {})
+    mine = next(r for r in cfg.table_rows() if r.name == PLANNER_ROW)
+    theirs = next(r for r in model_based_rows() if r.name == PLANNER_ROW)
+    for role in ("controller", "estimator"):
+        assert getattr(mine, role) == getattr(theirs, role)
+    assert mine.qos.kind == theirs.qos.kind
+    assert {**theirs.qos.options, "lookahead": True} == {**mine.qos.options, "lookahead": True}
