@@ -110,7 +110,7 @@ def table_command(
             help=(
                 "Several root seeds instead of --seed, comma separated (0,1,2: three "
                 "evaluation seeds): --trials episodes from each, pooled per row, each "
-                "seed's success rate beside the pooled one."
+                "seed's success rate beside the pooled one. \\[default: --seed alone]"
             ),
             show_default=False,
         ),
