@@ -14,10 +14,11 @@ from typer.testing import CliRunner
 from codesign_mb.cli import app
 from codesign_mb.core.registry import ComponentSpec
 from codesign_mb.plants.scenarios import SCENARIOS
-from codesign_mb.studies.table import TableConfig, best_row, pareto_front, run_table
+from codesign_mb.studies.table import TableConfig, run_table
 from codesign_mb.studies.table_cost import CPU_COLUMNS, training_cost
 from codesign_mb.studies.table_figures import markdown_table
 from codesign_mb.studies.table_rows import PLANT_PRESETS, TablePlant, TableRow, stack_of
+from codesign_mb.studies.table_select import best_row, pareto_front
 
 TOY_TABLE = """
 [table]

@@ -14,7 +14,7 @@ from typer.testing import CliRunner
 from codesign_mb.adaptation.base import RandomQos
 from codesign_mb.cli import app
 from codesign_mb.core.registry import ComponentSpec, PlantSpec, build, make_plant
-from codesign_mb.studies.table import TableConfig, best_row, run_table
+from codesign_mb.studies.table import TableConfig, run_table
 from codesign_mb.studies.table_figures import markdown_table
 from codesign_mb.studies.table_refs import (
     draw_references,
@@ -24,6 +24,7 @@ from codesign_mb.studies.table_refs import (
     reference_stacks,
 )
 from codesign_mb.studies.table_rows import PIPELINES, TablePlant, TableRow
+from codesign_mb.studies.table_select import best_row
 
 TOY = ComponentSpec("toy_pick")
 NONE = ComponentSpec("none")

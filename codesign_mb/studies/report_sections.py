@@ -24,7 +24,7 @@ from codesign_mb.core.config import Cap, check_range
 from codesign_mb.core.stats import wilson_interval
 from codesign_mb.studies import fig_cn, fig_wifi_figures, sweep_figures, table_figures
 from codesign_mb.studies.figures import curve_label, curves, pipeline_label, varying
-from codesign_mb.studies.table import pareto_front
+from codesign_mb.studies.table_select import pareto_front
 
 __all__ = [
     "LABEL_COLUMNS",

@@ -58,7 +58,7 @@ Columns of the summary (one row per table row and plant):
 ``pareto``
     Whether the row is on the Pareto front of its plant's own rows (no other row has at least
     its success with at most its average reliability, one of them strictly;
-    :func:`pareto_front`); a reference row never is.
+    :func:`~codesign_mb.studies.table_select.pareto_front`); a reference row never is.
 
 :data:`~codesign_mb.studies.table_rows.PIPELINES` maps a pipeline name to its default rows and
 :data:`~codesign_mb.studies.table_rows.PIPELINE_PLANTS` to its default plants (``model-free``:
@@ -68,9 +68,10 @@ plants can be given in a config file (``[[rows]]``, ``plants``).
 
 Fig. 5 is the requested reliability along one successful episode, on the first plant, of the
 co-design row of the ``model-free`` or ``model-based`` pipeline (as in the paper), or of the
-best row of other tables (:func:`best_row`: the least average reliability among rows with
->= 98 % success, else the most successful row). The files of ``codesign table`` (the
-summary, its Markdown, the Pareto plot and Fig. 5) are written by
+best row of other tables (:func:`~codesign_mb.studies.table_select.best_row`: the least
+average reliability among rows with >= 98 % success, else the most successful row). The
+files of ``codesign table`` (the summary, its Markdown, the Pareto plot and Fig. 5) are
+written by
 :func:`codesign_mb.studies.table_figures.write_table_outputs`.
 """
 
@@ -82,18 +83,13 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
-import numpy as np
 import pandas as pd
-from numpy.typing import ArrayLike, NDArray
 
 from codesign_mb.core.config import EPISODES_CAP, SEED_CAP, WORKERS_CAP, check_range, from_mapping
 from codesign_mb.core.records import RecordStore
-from codesign_mb.core.registry import ComponentSpec, PlantSpec, build, make_plant, plant_factory
+from codesign_mb.core.registry import ComponentSpec, PlantSpec, plant_factory
 from codesign_mb.evaluation.evaluate import rows_to_table, run_jobs
-from codesign_mb.network.link import BernoulliLink
-from codesign_mb.network.wrapper import LinkObservationWrapper
 from codesign_mb.plants.scenarios import SCENARIOS, get_scenario, scenario_options
-from codesign_mb.rollout import rollout
 from codesign_mb.studies.table_cost import (
     TrainingCost,
     incompatible_checkpoints,
@@ -112,7 +108,6 @@ from codesign_mb.studies.table_refs import (
     random_sources,
 )
 from codesign_mb.studies.table_rows import (
-    HYBRID_CODESIGN_ROW,
     PIPELINE_PLANTS,
     PIPELINES,
     PLANT_PRESETS,
@@ -120,16 +115,9 @@ from codesign_mb.studies.table_rows import (
     TableRow,
     row_for_plant,
 )
+from codesign_mb.studies.table_select import pareto_front
 
-__all__ = [
-    "PIPELINE_TIMELINE",
-    "TableConfig",
-    "best_row",
-    "pareto_front",
-    "qos_timeline",
-    "run_table",
-    "timeline_row_name",
-]
+__all__ = ["TableConfig", "run_table"]
 
 
 # -- config -----------------------------------------------------------------------------------
@@ -165,9 +153,10 @@ class TableConfig:
         Worker processes, shared by all rows and plants.
     timeline_row:
         Row whose successful episode is plotted (Fig. 5); ``""``: see
-        :func:`timeline_row_name`.
+        :func:`~codesign_mb.studies.table_select.timeline_row_name`.
     best_min_success:
-        Success rate a row needs to be the best one (:func:`best_row`).
+        Success rate a row needs to be the best one
+        (:func:`~codesign_mb.studies.table_select.best_row`).
     on_missing:
         ``"skip"``: a row with a missing checkpoint is listed with its ``status`` and no
         figures; ``"error"``: the run stops before any episode, naming every missing one.
@@ -280,71 +269,7 @@ def _scenario_plant(name: str) -> TablePlant:
     return TablePlant(name, "conveyor", scenario_options(name), scenario=name)
 
 
-# -- the Pareto front, the best row, the run ---------------------------------------------------
-def pareto_front(success: ArrayLike, reliability: ArrayLike) -> NDArray[np.bool_]:
-    """Which points no other point dominates (more success for no more network, or less).
-
-    ``j`` dominates ``i`` when ``success[j] >= success[i]`` and ``reliability[j] <=
-    reliability[i]``, one of them strictly; equal points do not dominate each other. NaN
-    points are never on the front and dominate nothing.
-    """
-    s = np.asarray(success, dtype=float)
-    r = np.asarray(reliability, dtype=float)
-    if s.shape != r.shape or s.ndim != 1:
-        raise ValueError(
-            f"success and reliability must be 1-D of one length, got {s.shape}, {r.shape}"
-        )
-    front = np.zeros(s.shape, dtype=bool)
-    valid = np.flatnonzero(np.isfinite(s) & np.isfinite(r))
-    best_below = -np.inf  # best success among strictly smaller reliabilities
-    for level in np.unique(r[valid]):
-        group = valid[r[valid] == level]
-        top = s[group].max()
-        front[group] = (s[group] == top) & (top > best_below)
-        best_below = max(best_below, top)
-    return front
-
-
-def best_row(summary: pd.DataFrame, plant: str, *, min_success: float = 0.98) -> str | None:
-    """The row of ``plant`` with the least average reliability among those with at least
-    ``min_success``; if none, the most successful (ties: less reliability). ``None`` if no row
-    of ``plant`` was evaluated. Reference rows (column ``reference``) are not candidates."""
-    mine = summary[(summary["plant"] == plant) & (summary["status"] == "ok")]
-    if "reference" in mine:
-        mine = mine[~mine["reference"].astype(bool)]
-    if mine.empty:
-        return None
-    good = mine[mine["success_rate"] >= min_success - 1e-12]
-    if not good.empty:
-        pick = good.sort_values(
-            ["mean_requested_reliability", "success_rate"], ascending=[True, False], kind="stable"
-        )
-    else:
-        pick = mine.sort_values(
-            ["success_rate", "mean_requested_reliability"], ascending=[False, True], kind="stable"
-        )
-    return str(pick.iloc[0]["row"])
-
-
-PIPELINE_TIMELINE: dict[str, str] = {
-    "model-free": HYBRID_CODESIGN_ROW,  # the shipped co-design (the model-free one: not yet)
-    "model-based": "MPC + predictor, rule QoS (co-design)",
-}
-"""Pipeline name -> the row of its Fig. 5 (the co-design, as in the paper) with its default
-rows; other tables plot :func:`best_row`."""
-
-
-def timeline_row_name(config: TableConfig, summary: pd.DataFrame) -> str | None:
-    """The row Fig. 5 shows: ``config.timeline_row``, else the pipeline's co-design row
-    (:data:`PIPELINE_TIMELINE`, default rows only), else :func:`best_row` on the first plant."""
-    if config.timeline_row:
-        return config.timeline_row
-    if not config.rows and config.pipeline in PIPELINE_TIMELINE:
-        return PIPELINE_TIMELINE[config.pipeline]
-    first = config.table_plants()[0].label
-    return best_row(summary, first, min_success=config.best_min_success)
-
-
+# -- the run ------------------------------------------------------------------------------------
 def run_table(
     config: TableConfig,
     *,
@@ -535,8 +460,8 @@ def _run_cells(
 
 
 def _mark_pareto(summary: pd.DataFrame) -> pd.DataFrame:
-    """Add the ``pareto`` column: the front of each plant's own rows (:func:`pareto_front`);
-    reference rows are never on it."""
+    """Add the ``pareto`` column: the front of each plant's own rows
+    (:func:`~codesign_mb.studies.table_select.pareto_front`); reference rows never are."""
     summary["pareto"] = False
     for label in summary["plant"].unique():
         mask = ((summary["plant"] == label) & ~summary["reference"].astype(bool)).to_numpy()
@@ -545,34 +470,3 @@ def _mark_pareto(summary: pd.DataFrame) -> pd.DataFrame:
             summary.loc[mask, "mean_requested_reliability"],
         )
     return summary
-
-
-# -- Fig. 5: the QoS timeline ------------------------------------------------------------------
-def qos_timeline(
-    plant: TablePlant | PlantSpec, row: TableRow, episodes: pd.DataFrame
-) -> tuple[pd.DataFrame, int] | None:
-    """The per-step record of the row's first successful episode (and its seed), or ``None``.
-
-    With a :class:`TablePlant`, only the episodes of that plant (column ``plant``) count.
-    """
-
-    if episodes.empty:
-        return None
-    mask = episodes["row"] == row.name
-    spec: PlantSpec = plant if isinstance(plant, PlantSpec) else plant.spec
-    if isinstance(plant, TablePlant) and "plant" in episodes:
-        mask &= episodes["plant"] == plant.label
-    mine = episodes[mask & episodes["success"].astype(bool)]
-    if mine.empty:
-        return None
-    seed = int(mine.sort_values("episode").iloc[0]["seed"])
-    probe = make_plant(spec)
-    env = LinkObservationWrapper(probe, BernoulliLink(), build("qos", row.qos, probe))
-    steps = rollout(
-        env,
-        build("estimator", row.estimator, probe),
-        build("controller", row.controller, probe),
-        seed=seed,
-    )
-    env.close()
-    return steps, seed

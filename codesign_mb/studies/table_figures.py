@@ -25,7 +25,7 @@ from codesign_mb.core.registry import resolve_checkpoint
 from codesign_mb.core.results import atomic_write, to_jsonable, write_results
 from codesign_mb.evaluation.phase_metrics import SUMMARY_COLUMNS as PHASE_COLUMNS
 from codesign_mb.studies.figures import new_figure, save_png
-from codesign_mb.studies.table import TableConfig, qos_timeline, run_table, timeline_row_name
+from codesign_mb.studies.table import TableConfig, run_table
 from codesign_mb.studies.table_refs import (
     ROW_KIND,
     draw_references,
@@ -33,6 +33,7 @@ from codesign_mb.studies.table_refs import (
     reference_legend,
 )
 from codesign_mb.studies.table_rows import row_for_plant
+from codesign_mb.studies.table_select import qos_timeline, timeline_row_name
 from codesign_mb.studies.tuned import tuned_file
 
 __all__ = [
@@ -390,7 +391,7 @@ def write_table_outputs(
 
     ``tab_p.{parquet,csv,json}`` (the summary), ``tab_p.md`` (:func:`markdown_table`),
     ``tab_p_episodes.*``, ``fig_pareto.png`` (:func:`plot_pareto`) and, when the row of
-    :func:`~codesign_mb.studies.table.timeline_row_name` has a successful episode on the
+    :func:`~codesign_mb.studies.table_select.timeline_row_name` has a successful episode on the
     first plant, ``fig_lat.*`` (its per-step record, re-run from its seed) and
     ``fig_lat.png`` (:func:`plot_timeline`). ``extra`` goes into every table's metadata,
     with the plants and the rows as run on each (:func:`expanded_rows`); the provenance
