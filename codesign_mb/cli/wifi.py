@@ -228,8 +228,8 @@ def capacity_command(
         note(f"results written to {files['parquet']}, {files['csv']} and {files['png']}")
         for r in capacity_ratios(curves).to_dict("records"):
             note(
-                f"{r['channel']}, {r['scheduler']}: co-design {r['codesign_capacity']} robots "
-                f"/ static {r['static_capacity']} = {r['ratio']:.3g} ({r['bound']})"
+                f"{r['channel']}, {r['scheduler']}: capacity co-design {r['codesign_capacity']} "
+                f"/ static {r['static_capacity']} robots = {r['ratio']:.3g} ({r['bound']})"
             )
     shown = curves if as_json else curves[[c for c in _CURVE_COLUMNS if c in curves]]
     emit(shown, as_json=as_json, title="task success vs robots (fig_wifi)")
