@@ -190,6 +190,23 @@ def test_report_reads_the_tables_other_commands_write(tmp_path: Path) -> None:
     assert "q=0.5" in text and "| static | greedy | paper | 100% | 50% |" in text
 
 
+def test_report_pools_the_robot_episodes_of_capacity_trials(tmp_path: Path) -> None:
+    """A ``codesign wifi capacity`` trial counts its N robots: 2 trials x 4 robots = 8."""
+    trials = pd.DataFrame(
+        [
+            {"channel": "paper", "scheduler": "greedy", "pipeline": p, "robots": 4, "trial": k,
+             "successes": s, "success_rate": s / 4}
+            for p, successes in (("static", (3, 3)), ("codesign", (4, 4)))
+            for k, s in enumerate(successes)
+        ]
+    )  # fmt: skip
+    write_results(tmp_path, table=trials, config=None, name="fig_wifi")
+    text = build_report(tmp_path, config=ReportConfig(dpi=40)).markdown.read_text()
+    assert "| static | greedy | paper | 75% (8) |" in text
+    assert "| codesign | greedy | paper | 100% (8) |" in text
+    assert "the band is its 95% Wilson interval" in text
+
+
 def test_success_summary_wilson() -> None:
     frame = pd.DataFrame({"g": ["a"] * 10, "success": [True] * 8 + [False] * 2})
     row = success_summary(frame, ["g"]).iloc[0]

@@ -63,7 +63,14 @@ def test_fig_wifi_grid_is_configs_fig_wifi_toml() -> None:
     ours = CapacityConfig(**{**FIG_WIFI_GRID, "trials": settings["trials"], "seed": 0})
     assert from_file == ours
     assert study_command("fig_wifi", settings).startswith(
-        "codesign wifi capacity -c configs/fig_wifi.toml --trials 5"
+        "codesign wifi capacity -c configs/fig_wifi.toml --trials 20"
+    )
+    assert from_file.stack == "realistic" and from_file.stop_below == 0.5
+    assert max(from_file.robots) == 48
+    smoke = study_settings("fig_wifi", PaperConfig(smoke=True))
+    assert study_command("fig_wifi", smoke) == (
+        "codesign wifi capacity --stack realistic --robots 1,2 --channels paper "
+        "--schedulers greedy --stop-below 0.5 --trials 1 --max-steps 40 --seed 0"
     )
 
 

@@ -25,7 +25,7 @@ from codesign_mb.wifi.admission import admit_edf, must_serve
 from codesign_mb.wifi.allocators import served_bits
 from codesign_mb.wifi.engine import ChannelEngine, Frame
 
-CELL = WifiConfig(channel=ChannelConfig(fixed_mcs=1, q0=0.9, rician_k_db=math.inf))
+CELL = WifiConfig(channel=ChannelConfig(fixed_mcs=1, rician_k_db=math.inf))
 
 # (name, config, robots, reliability, latency, seed): light, at capacity, overloaded, bursts
 TRACES = {

@@ -23,7 +23,7 @@ from codesign_mb.wifi import (
 from codesign_mb.wifi.convex_qp import OsqpQp
 
 CELL = WifiConfig(
-    channel=ChannelConfig(fixed_mcs=1, q0=0.9, rician_k_db=math.inf),
+    channel=ChannelConfig(fixed_mcs=1, rician_k_db=math.inf),
     traffic=TrafficConfig(capture="synchronised"),
 )
 

@@ -2,18 +2,27 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pandas as pd
 import pytest
+from scipy.stats import binomtest
 
+from codesign_mb.core.records import RecordStore
+from codesign_mb.core.registry import ComponentSpec
+from codesign_mb.plants.scenarios import scenario_options
 from codesign_mb.rollout.compose import covariance_rule_on
+from codesign_mb.studies import fig_wifi
 from codesign_mb.studies.fig_wifi import (
     CHANNEL_PRESETS,
     CapacityConfig,
+    capacity_ratios,
     capacity_table,
     run_capacity,
 )
 from codesign_mb.studies.fig_wifi_figures import plot_capacity
+from codesign_mb.studies.table_rows import PLANNER_ROW, model_based_rows
 from codesign_mb.wifi import WifiConfig, generate_trace
 from codesign_mb.wifi.offline import airtime_prices
 
@@ -64,6 +73,22 @@ def test_capacity_config_validates_and_picks_the_stack():
         CapacityConfig(robots_by_channel={"better": [0]})
     with pytest.raises(ValueError, match="workers"):
         CapacityConfig(workers=0)
+    with pytest.raises(ValueError, match="stop_below must be in"):
+        CapacityConfig(stop_below=0.96)  # above the 95 % target: it could hide a capacity
+    with pytest.raises(ValueError, match="a conveyor stack"):
+        CapacityConfig(stack="toy", scenario="realistic")
+    assert CapacityConfig(robots=(1, 4), channels=("paper",)).robot_episodes() == 2 * 2 * 5 * 4
+
+
+def test_the_realistic_stack_is_the_tables_planner_row_on_the_realistic_scenario():
+    cfg = CapacityConfig(stack="realistic")
+    assert cfg.plant.name == "conveyor" and cfg.plant.options == scenario_options("realistic")
+    row = next(r for r in model_based_rows() if r.name == PLANNER_ROW)
+    for pipeline in cfg.pipelines.values():
+        assert (pipeline.controller, pipeline.estimator) == (row.controller, row.estimator)
+    assert cfg.pipelines["codesign"].qos == row.qos
+    static = ComponentSpec("static", options={"reliability": 1.0, "latency_steps": 1})
+    assert cfg.pipelines["static"].qos == static
 
 
 def test_capacity_runs_the_conveyor_with_mpc_predictor_and_both_qos(tmp_path):
@@ -100,6 +125,108 @@ def test_capacity_table_sums_mpc_failures_over_trials():
     assert table.loc["mpc", "mpc_failures"] == 3 and table.loc["mpc", "trials"] == 2
     assert np.isnan(table.loc["toy", "mpc_failures"])  # no MPC in that pipeline
     assert np.isnan(table.loc["mpc", "mean_reliability"])  # not in the results
+
+
+def test_capacity_table_pools_robot_episodes_with_a_wilson_interval():
+    """Per point: success over trials x N robot-episodes, its Wilson interval (scipy's, an
+    independent computation), the capacity, whether it is censored and where a curve stopped."""
+    rows = [
+        {"channel": "paper", "scheduler": "greedy", "pipeline": p, "robots": n, "trial": k,
+         "successes": s, "success_rate": s / n, "delivered_fraction": 0.1 * k}
+        for p, by_n in (("static", {1: (1, 1), 4: (4, 3), 8: (2, 1)}),
+                        ("codesign", {1: (1, 1), 4: (4, 4), 8: (8, 8)}))
+        for n, successes in by_n.items()
+        for k, s in enumerate(successes)
+    ]  # fmt: skip
+    table = capacity_table(pd.DataFrame(rows), stop_below=0.5).set_index(["pipeline", "robots"])
+    for (pipeline, n), point in table.iterrows():
+        k = sum(r["successes"] for r in rows if (r["pipeline"], r["robots"]) == (pipeline, n))
+        ci = binomtest(k, 2 * n).proportion_ci(confidence_level=0.95, method="wilson")
+        assert (point["successes"], point["robot_episodes"]) == (k, 2 * n)
+        assert point["success_rate"] == pytest.approx(k / (2 * n))
+        assert point["success_ci_low"] == pytest.approx(ci.low, abs=1e-9)
+        assert point["success_ci_high"] == pytest.approx(ci.high, abs=1e-9)
+        assert point["delivered_fraction"] == pytest.approx(0.05)
+    static, codesign = table.loc["static"], table.loc["codesign"]
+    assert static["capacity_robots"].iloc[0] == 1 and not static["capacity_censored"].iloc[0]
+    assert static["stopped_at_robots"].iloc[0] == 8  # 3/16 < 50 %
+    assert codesign["capacity_robots"].iloc[0] == 8 and codesign["capacity_censored"].iloc[0]
+    assert math.isnan(codesign["stopped_at_robots"].iloc[0])
+    # Without the successes column: round(success_rate * robots), the same table.
+    legacy = pd.DataFrame(rows).drop(columns="successes")
+    pd.testing.assert_frame_equal(
+        capacity_table(legacy, stop_below=0.5).drop(columns="successes"),
+        capacity_table(pd.DataFrame(rows), stop_below=0.5).drop(columns="successes"),
+    )
+
+
+def test_capacity_ratios_say_whether_the_ratio_is_a_bound():
+    def curve(channel, scheduler, pipeline, capacity, censored):
+        names = {"channel": channel, "scheduler": scheduler, "pipeline": pipeline}
+        return {**names, "robots": 1, "capacity_robots": capacity, "capacity_censored": censored}
+
+    curves = pd.DataFrame(
+        [
+            curve("paper", "greedy", "static", 6, False),
+            curve("paper", "greedy", "codesign", 24, False),
+            curve("paper", "convex", "static", 12, False),
+            curve("paper", "convex", "codesign", 48, True),
+            curve("better", "greedy", "static", 0, False),
+            curve("better", "greedy", "codesign", 8, False),
+        ]
+    )
+    ratios = capacity_ratios(curves).set_index(["channel", "scheduler"])
+    assert ratios.loc[("paper", "greedy"), "ratio"] == 4.0
+    assert ratios.loc[("paper", "greedy"), "bound"] == "exact"
+    assert ratios.loc[("paper", "convex"), "ratio"] == 4.0
+    assert ratios.loc[("paper", "convex"), "bound"] == "at least"
+    assert ratios.loc[("better", "greedy"), "ratio"] == math.inf
+    assert capacity_ratios(curves[curves["pipeline"] == "static"]).empty
+
+
+def test_early_stop_runs_no_count_above_a_curve_below_stop_below(
+    tmp_path, monkeypatch: pytest.MonkeyPatch
+):
+    """A curve whose mean success at a count is below ``stop_below`` runs none of its larger
+    counts: the table is the full sweep's up to each curve's first such count, computed or
+    reused from a store that holds the full sweep."""
+    base = dict(
+        robots=(1, 8, 12), channels=("paper",), schedulers=("greedy",), stack="toy", trials=2,
+        max_steps=20,
+    )  # fmt: skip
+    store = RecordStore(tmp_path, what="trial")
+    full = run_capacity(CapacityConfig(**base), store=store)
+    means = full.groupby(["pipeline", "robots"])["success_rate"].mean()
+    keep = []
+    for pipeline in ("static", "codesign"):  # the rule, by hand
+        for n in base["robots"]:
+            keep.append((pipeline, n))
+            if means[(pipeline, n)] < 0.5:
+                break
+    assert ("static", 12) not in keep  # this toy cell: static fails at 8 robots
+    points = zip(full["pipeline"], full["robots"], strict=True)
+    expected = full[[(p, n) in keep for p, n in points]]
+    stopped_cfg = CapacityConfig(**base, stop_below=0.5)
+    calls: list[tuple[str, int]] = []
+    run = fig_wifi.run_point
+
+    def counted(config, **point):
+        calls.append((point["pipeline_name"], point["n_robots"]))
+        return run(config, **point)
+
+    monkeypatch.setattr(fig_wifi, "run_point", counted)
+    fresh = run_capacity(stopped_cfg)
+    assert sorted(set(calls)) == sorted(keep) and len(calls) == 2 * len(keep)
+    reuse = RecordStore(tmp_path, what="trial")
+    resumed = run_capacity(stopped_cfg, store=reuse)
+    assert reuse.computed == 0 and reuse.reused == len(full)  # the rows past a stop: unused
+    for table in (fresh, resumed):
+        pd.testing.assert_frame_equal(
+            table.reset_index(drop=True), expected.reset_index(drop=True), check_exact=True
+        )
+    curves = capacity_table(fresh, stop_below=0.5).drop_duplicates("pipeline")
+    stopped = dict(zip(curves["pipeline"], curves["stopped_at_robots"], strict=True))
+    assert stopped["static"] == 8
 
 
 @pytest.mark.slow

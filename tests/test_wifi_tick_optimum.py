@@ -31,7 +31,7 @@ from codesign_mb.wifi.tick_dp import TickDp, layout_value, size_values
 from codesign_mb.wifi.tick_milp import solve_tick_milp
 from codesign_mb.wifi.tick_optimal import TickOptimalAllocator, TickOptimalConfig
 
-CELL = WifiConfig(channel=ChannelConfig(fixed_mcs=1, q0=0.9, rician_k_db=math.inf))
+CELL = WifiConfig(channel=ChannelConfig(fixed_mcs=1, rician_k_db=math.inf))
 
 
 @cache

@@ -73,7 +73,7 @@ def paper_command(
     ] = 100,
     wifi_trials: Annotated[
         int, typer.Option("--wifi-trials", help="Trials per point of Fig. 6.")
-    ] = 5,
+    ] = 20,
     lqg_episodes: Annotated[
         int, typer.Option("--lqg-episodes", help="Episodes per reliability of the LQG baseline.")
     ] = 8,

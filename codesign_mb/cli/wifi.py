@@ -109,6 +109,22 @@ def trace_command(
         emit({**summary, "horizon_ticks": t.horizon_ticks}, as_json=True)
 
 
+_CURVE_COLUMNS = (
+    "channel",
+    "scheduler",
+    "pipeline",
+    "robots",
+    "success_rate",
+    "success_ci_low",
+    "success_ci_high",
+    "mean_reliability",
+    "delivered_fraction",
+    "capacity_robots",
+    "stopped_at_robots",
+)
+"""The columns of the curves ``codesign wifi capacity`` prints as a table (JSON: all)."""
+
+
 def capacity_command(
     ctx: typer.Context,
     robots: Annotated[
@@ -124,19 +140,29 @@ def capacity_command(
         str,
         typer.Option(
             "--stack",
-            help="Plant and pipelines: conveyor (MuJoCo + MPC + predictor) or toy.",
+            help="Plant and pipelines: realistic (the realistic scenario, MPC + belt IMM, "
+            "static QoS vs the QoS planner: Fig. 6), conveyor (0.6 m/s, MPC + predictor, "
+            "static vs the covariance rule) or toy.",
         ),
     ] = "conveyor",
     scenario: Annotated[
         str | None,
         typer.Option(
             "--scenario",
-            help=f"{SCENARIO_HELP} The conveyor every robot runs (stack conveyor). "
-            "\\[default: the stack's plant: the paper scenario's conveyor at 0.6 m/s]",
+            help=f"{SCENARIO_HELP} The conveyor every robot runs (stack conveyor or realistic). "
+            "\\[default: the stack's plant]",
             show_default=False,
         ),
     ] = None,
     trials: Annotated[int, typer.Option("--trials", "-n", help="Episodes per point.")] = 4,
+    stop_below: Annotated[
+        float,
+        typer.Option(
+            "--stop-below",
+            help="Early stop: a curve whose mean success at a robot count is below this runs "
+            "none of its larger counts (0: all run; at most the 95 % target).",
+        ),
+    ] = 0.0,
     max_steps: Annotated[
         int | None,
         typer.Option(
@@ -155,14 +181,16 @@ def capacity_command(
     """Task success vs number of robots on one channel (Fig. 6), per pipeline x scheduler.
 
     Writes OUT/fig_wifi.parquet, .csv and .json (one row per trial) and OUT/fig_wifi.png,
-    and prints each curve with its capacity (most robots at 95 % success). Finished trials
-    are kept in OUT/.records as they finish: rerun an interrupted command to resume it.
+    and prints each curve with its capacity (most robots at 95 % success) and the co-design
+    over static capacity per cell and scheduler. Robot counts run in ascending order; with
+    --stop-below a curve stops once its success falls below it. Finished trials are kept in
+    OUT/.records as they finish: rerun an interrupted command to resume it.
 
     The plant and the pipelines (controller, estimator, QoS policy) come from --stack, or
     from the config file's plant and pipelines tables (in a capacity table or at the top
     level), which also takes robots_by_channel (e.g. better = [8, 16, 32]).
     """
-    from codesign_mb.studies.fig_wifi import CapacityConfig
+    from codesign_mb.studies.fig_wifi import CapacityConfig, capacity_ratios
     from codesign_mb.studies.fig_wifi_figures import run_capacity_study
 
     overrides: dict[str, Any] = explicit(
@@ -174,6 +202,7 @@ def capacity_command(
             "stack": stack,
             "scenario": scenario,
             "trials": trials,
+            "stop_below": stop_below,
             "max_steps": max_steps,
             "workers": workers,
             "seed": seed,
@@ -186,6 +215,9 @@ def capacity_command(
         overrides["robots"] = list(_parse_robots(str(overrides["robots"])))
     cfg = load_config(CapacityConfig, config, overrides, section="capacity")
     n_points = len(cfg.points())
+    if not as_json:
+        stop = f", fewer with the early stop below {cfg.stop_below:.0%}" if cfg.stop_below else ""
+        note(f"{n_points} trials: at most {cfg.robot_episodes()} robot-episodes{stop}")
     _, curves, files = run_capacity_study(
         cfg,
         out,
@@ -194,7 +226,13 @@ def capacity_command(
     )
     if not as_json:
         note(f"results written to {files['parquet']}, {files['csv']} and {files['png']}")
-    emit(curves, as_json=as_json, title="task success vs robots (fig_wifi)")
+        for r in capacity_ratios(curves).to_dict("records"):
+            note(
+                f"{r['channel']}, {r['scheduler']}: capacity co-design {r['codesign_capacity']} "
+                f"/ static {r['static_capacity']} robots = {r['ratio']:.3g} ({r['bound']})"
+            )
+    shown = curves if as_json else curves[[c for c in _CURVE_COLUMNS if c in curves]]
+    emit(shown, as_json=as_json, title="task success vs robots (fig_wifi)")
 
 
 def crosscheck_command(

@@ -1,84 +1,53 @@
 """Fig. 6 (``fig_wifi``): task success versus number of robots sharing one WiFi 6 channel.
 
-For each robot count ``N`` and each (pipeline, scheduler) pair, ``trials`` episodes run N
-robots in lockstep on one :class:`~codesign_mb.wifi.cell.SharedChannel`; a trial's success
-rate is the fraction of its robots whose task succeeded (``info["success"]`` at any step).
-The *capacity* of a curve is the largest ``N`` up to which every simulated count has a mean
-success of at least ``success_target`` (95 %).
+For each robot count ``N`` and each curve (a cell, a scheduler and a pipeline), ``trials``
+episodes run N robots in lockstep on one :class:`~codesign_mb.wifi.cell.SharedChannel`; a
+trial's success rate is the fraction of its robots whose task succeeded (``info["success"]``
+at any step). The *capacity* of a curve is the largest ``N`` up to which every simulated count
+has a mean success of at least ``success_target`` (95 %).
 
-The pipelines are configuration: a plant (:class:`~codesign_mb.core.registry.PlantSpec`)
-and, per pipeline, a controller, an estimator and a QoS policy
-(:class:`~codesign_mb.core.registry.ComponentSpec`), so learned pipelines (SAC, MLP
-estimator, learned QoS) plug in by naming their kinds and checkpoints. Besides the kinds of
-:mod:`codesign_mb.core.registry`, two model-based QoS rules of
-:mod:`codesign_mb.adaptation.rules` are known here: ``"age_triggered"`` (``options``:
-``low``, ``high``, ``max_age_steps``, ``latency_steps``) and ``"covariance_triggered"``
-(``options``: ``threshold_m``, ``low``, ``high``, ``latency_steps``, ``lift_margin_m``,
-``predictor_options``).
+Per point, :func:`capacity_table` gives the success pooled over the point's robot-episodes
+(``trials x N``) with its Wilson interval, the requested reliability and the delivered
+fraction (frames whose state arrived in time, per step). The robots of one trial share the
+channel, so their outcomes are not independent: the interval, which counts each
+robot-episode as one independent draw, is optimistic about that.
 
-Named stacks (:data:`STACKS`) give the plant and the two pipelines of the figure:
+Cost: a trial at ``N`` robots costs ``N`` robot-episodes (:meth:`CapacityConfig.robot_episodes`
+is the sweep's at most). The robot counts run in ascending order, every curve's trials of one
+count together (in parallel with ``workers``); with ``stop_below``, a curve whose mean success
+at a count is below it runs none of its larger counts (:func:`capacity_table` says where each
+stopped). That never changes a capacity: ``stop_below`` is at most ``success_target``.
 
-``"conveyor"`` (default)
-    The MuJoCo conveyor pick (:class:`~codesign_mb.plants.conveyor.ConveyorPickPlace`, belt
-    at 0.6 m/s), MPC (:class:`~codesign_mb.control.mpc.MpcController`) and the
-    delay-compensating predictor; ``static`` asks for ``q = 1, tau = 1`` always, ``codesign``
-    uses the covariance-triggered rule (threshold 2 cm, ``q`` 0.1 or 1). Over the abstract
-    link (48 episodes each) this stack succeeds 100 % at ``q = 1``, 81 % at ``q = 0.1`` and
-    100 % with the rule, which asks for ``q = 0.17`` on average.
-``"toy"``
-    The kinematic toy conveyor (seconds per point, for tests and quick looks) with a static
-    and an age-triggered QoS.
-
-Channels (:data:`CHANNEL_PRESETS`): ``"paper"`` is a poor 40 MHz cell (every robot at MCS 1
-with ``q0 = 0.9``, 3.2 us guard interval, Trigger and BlockAck frames at the 6 Mb/s basic
-rate) in which one camera frame of 13,500 bytes takes about 5.5 ms of the whole channel and
-its state frame's DL exchange about 0.4 ms more, so about 6 robots at ``q = 1`` fill the 40
-ms period (the greedy scheduler delivers every frame to 6 robots, 80 % to 7, 15 % to 8);
-``"better"`` uses link adaptation (MCS 0-11 for ``q0 = 0.95``,
-0.8 us guard interval) with robots 5-20 m from the AP and 24 Mb/s control frames.
-
-The figure and the files of ``codesign wifi capacity`` are in
-:mod:`codesign_mb.studies.fig_wifi_figures`.
+The sweep's settings (:class:`CapacityConfig`), the plants, pipelines and cells, and the
+assumptions behind them, are in :mod:`codesign_mb.studies.fig_wifi_config`; the figure and
+the files of ``codesign wifi capacity`` in :mod:`codesign_mb.studies.fig_wifi_figures`.
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Callable, Iterable, Iterator, Mapping
-from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 import pandas as pd
 
-from codesign_mb.adaptation.rules import AgeTriggeredQos
-from codesign_mb.core.config import (
-    EPISODES_CAP,
-    ROBOTS_CAP,
-    STEPS_CAP,
-    WORKERS_CAP,
-    check_range,
-    from_mapping,
-)
 from codesign_mb.core.records import RecordStore, digest
-from codesign_mb.core.registry import (
-    ComponentSpec,
-    PlantSpec,
-    build,
-    check_options,
-    factory,
-    make_plant,
-)
+from codesign_mb.core.registry import build, make_plant
+from codesign_mb.core.stats import wilson_interval
 from codesign_mb.evaluation import pool
 from codesign_mb.network.wrapper import LinkObservationWrapper
-from codesign_mb.plants.scenarios import scenario_options
 from codesign_mb.rollout import rollout_shared
-from codesign_mb.rollout.compose import covariance_rule
+from codesign_mb.studies.fig_wifi_config import (
+    CHANNEL_PRESETS,
+    QOS_RULES,
+    STACKS,
+    AgeTriggeredQos,
+    CapacityConfig,
+    PipelineConfig,
+    describe_channel,
+)
 from codesign_mb.wifi.cell import SharedChannel
-from codesign_mb.wifi.channel import ChannelConfig
-from codesign_mb.wifi.config import SCHEDULERS, WifiConfig
-from codesign_mb.wifi.mac import MacTiming
-from codesign_mb.wifi.phy import PhyConfig
 
 __all__ = [
     "CHANNEL_PRESETS",
@@ -87,262 +56,12 @@ __all__ = [
     "AgeTriggeredQos",
     "CapacityConfig",
     "PipelineConfig",
+    "capacity_ratios",
     "capacity_table",
     "describe_channel",
     "run_capacity",
     "run_point",
 ]
-
-
-def _component(kind: str, options: Mapping[str, Any] | None = None) -> Any:
-
-    return ComponentSpec(kind=kind, options=dict(options or {}))
-
-
-@dataclass(frozen=True)
-class PipelineConfig:
-    """One robot stack: controller, estimator and QoS policy (``ComponentSpec`` tables)."""
-
-    controller: Any = field(default_factory=lambda: _component("toy_pick"))
-    estimator: Any = field(default_factory=lambda: _component("none"))
-    qos: Any = field(
-        default_factory=lambda: _component("static", {"reliability": 1.0, "latency_steps": 1})
-    )
-
-    def __post_init__(self) -> None:
-
-        for name in ("controller", "estimator", "qos"):
-            value = getattr(self, name)
-            if isinstance(value, Mapping):
-                object.__setattr__(self, name, from_mapping(ComponentSpec, value, where=name))
-            elif not isinstance(value, ComponentSpec):
-                raise ValueError(f"{name} must be a component table, got {value!r}")
-
-
-_STATIC = {"kind": "static", "options": {"reliability": 1.0, "latency_steps": 1}}
-
-STACKS: dict[str, dict[str, Any]] = {
-    "conveyor": {
-        "plant": {
-            "name": "conveyor",
-            "options": {"belt_speed_mps": 0.6},
-        },
-        "pipelines": {
-            "static": {
-                "controller": {"kind": "mpc"},
-                "estimator": {"kind": "predictor"},
-                "qos": _STATIC,
-            },
-            "codesign": {
-                "controller": {"kind": "mpc"},
-                "estimator": {"kind": "predictor"},
-                "qos": {
-                    "kind": "covariance_triggered",
-                    "options": {"threshold_m": 0.02, "low": 0.1, "high": 1.0, "latency_steps": 1},
-                },
-            },
-        },
-    },
-    "toy": {
-        "plant": {"name": "toy"},
-        "pipelines": {
-            "static": {
-                "controller": {"kind": "toy_pick"},
-                "estimator": {"kind": "none"},
-                "qos": _STATIC,
-            },
-            "codesign": {
-                "controller": {"kind": "toy_pick"},
-                "estimator": {"kind": "none"},
-                "qos": {
-                    "kind": "age_triggered",
-                    "options": {"low": 0.3, "high": 1.0, "max_age_steps": 2, "latency_steps": 1},
-                },
-            },
-        },
-    },
-}
-"""Named (plant, pipelines) pairs for ``codesign wifi capacity --stack``."""
-
-QOS_RULES: dict[str, Callable[..., Any]] = {
-    "age_triggered": lambda env, **options: AgeTriggeredQos(**options),
-    "covariance_triggered": covariance_rule,
-}
-"""QoS kinds known to the capacity study on top of ``pipeline.components.QOS_KINDS``."""
-
-_RULE_SIGNATURES: dict[str, tuple[Callable[..., Any], bool]] = {
-    "age_triggered": (AgeTriggeredQos, False),
-    "covariance_triggered": (covariance_rule, True),
-}
-"""What each of :data:`QOS_RULES` calls, and whether with the plant: its options' schema."""
-
-CHANNEL_PRESETS: dict[str, WifiConfig] = {
-    # Poor channel: every robot at MCS 1 (QPSK 1/2) with q0 = 0.9, the long 3.2 us guard
-    # interval (a factory hall's delay spread), basic-rate control frames at 6 Mb/s: a camera
-    # frame takes ~5.5 ticks of the whole band and its DL exchange ~0.4, so static QoS (q = 1)
-    # fills the 40 ms period with about 6 robots, as in the paper.
-    "paper": WifiConfig(
-        phy=PhyConfig(guard_interval_us=3.2, ul_guard_interval_us=3.2),
-        channel=ChannelConfig(fixed_mcs=1, q0=0.9, rician_k_db=math.inf),
-        mac=MacTiming(legacy_rate_mbps=6.0),
-    ),
-    # Better channel: link adaptation on a TGax path loss, robots 5-20 m from the AP.
-    "better": WifiConfig(channel=ChannelConfig(q0=0.95, distance_range_m=(5.0, 20.0))),
-}
-"""Named cells for ``codesign wifi capacity --channels``."""
-
-
-def describe_channel(name: str) -> str:
-    """One line of PHY/MAC assumptions of a :data:`CHANNEL_PRESETS` cell (for figures)."""
-    cfg = CHANNEL_PRESETS[name]
-    ch, mac, phy = cfg.channel, cfg.mac, cfg.phy
-    mcs = f"MCS {ch.fixed_mcs}" if ch.fixed_mcs is not None else f"MCS 0-{ch.max_mcs} adaptive"
-    return (
-        f"{phy.bandwidth_mhz} MHz, {mcs}, q0 = {ch.q0:g}, GI {phy.guard_interval_us:g} us, "
-        f"control frames {mac.legacy_rate_mbps:g} Mb/s"
-    )
-
-
-@dataclass(frozen=True)
-class CapacityConfig:
-    """Settings of the capacity sweep (``codesign wifi capacity``).
-
-    Parameters
-    ----------
-    robots:
-        Robot counts ``N`` to simulate.
-    robots_by_channel:
-        Robot counts for some channels instead of ``robots`` (a better channel holds many
-        more robots), e.g. ``{"better": [8, 16, 24, 32]}``.
-    channels:
-        Names of :data:`CHANNEL_PRESETS` to sweep (each gives one panel).
-    schedulers:
-        Allocators to compare (``"greedy"``, ``"convex"``).
-    stack:
-        Name of a :data:`STACKS` entry: the default plant and pipelines.
-    pipelines:
-        Robot stacks by name (``PipelineConfig`` tables); empty: the stack's.
-    plant:
-        The plant every robot runs (``PlantSpec`` table); ``None``: the stack's.
-    scenario:
-        A conveyor scenario (:data:`~codesign_mb.plants.scenarios.SCENARIOS`) every robot's
-        conveyor runs instead of ``plant`` (stack ``conveyor`` only); ``""``: the stack's
-        plant (``conveyor``: 0.6 m/s, otherwise the ``paper`` scenario).
-    trials:
-        Episodes per point.
-    max_steps:
-        Episode length cap in control steps (``None``: the plant's horizon).
-    success_target:
-        Success rate that defines a curve's capacity.
-    seed:
-        Root seed; trial ``k`` of every point uses the same spawned seed (common numbers).
-    workers:
-        Processes running points in parallel (1: in this process). The table does not depend
-        on it.
-    """
-
-    robots: tuple[int, ...] = (1, 2, 4, 6, 8, 10)
-    robots_by_channel: dict[str, tuple[int, ...]] = field(default_factory=dict)
-    channels: tuple[str, ...] = ("paper", "better")
-    schedulers: tuple[str, ...] = ("greedy", "convex")
-    stack: str = "conveyor"
-    pipelines: dict[str, PipelineConfig] = field(default_factory=dict)
-    plant: Any = None
-    scenario: str = ""
-    trials: int = 4
-    max_steps: int | None = None
-    success_target: float = 0.95
-    seed: int = 0
-    workers: int = 1
-
-    def __post_init__(self) -> None:
-
-        def counts(name: str, value: Any) -> tuple[int, ...]:
-            out = tuple(int(n) for n in value)
-            if not out or any(n < 1 for n in out):
-                raise ValueError(f"{name} must be integers >= 1, got {value!r}")
-            check_range(name, out, cap=ROBOTS_CAP)
-            return out
-
-        object.__setattr__(self, "robots", counts("robots", self.robots))
-        by_channel = {
-            str(c): counts(f"robots_by_channel.{c}", v)
-            for c, v in dict(self.robots_by_channel).items()
-        }
-        object.__setattr__(self, "robots_by_channel", by_channel)
-        object.__setattr__(self, "channels", tuple(self.channels))
-        object.__setattr__(self, "schedulers", tuple(self.schedulers))
-        for name in ("channels", "schedulers"):
-            if not getattr(self, name):
-                raise ValueError(f"{name} must name at least one, got none")
-        for c in (*self.channels, *by_channel):
-            if c not in CHANNEL_PRESETS:
-                raise ValueError(f"channels must be among {sorted(CHANNEL_PRESETS)}, got {c!r}")
-        for s in self.schedulers:
-            if s not in SCHEDULERS:
-                raise ValueError(f"schedulers must be among {SCHEDULERS}, got {s!r}")
-        if self.stack not in STACKS:
-            raise ValueError(f"stack must be one of {sorted(STACKS)}, got {self.stack!r}")
-        stack = STACKS[self.stack]
-        pipelines = {}
-        for name, value in (dict(self.pipelines) or stack["pipelines"]).items():
-            pipelines[name] = (
-                from_mapping(PipelineConfig, value, where=f"pipelines.{name}")
-                if isinstance(value, Mapping)
-                else value
-            )
-        object.__setattr__(self, "pipelines", pipelines)
-        plant = self.plant if self.plant is not None else stack["plant"]
-        if self.scenario:
-            if self.plant is not None or self.stack != "conveyor":
-                raise ValueError(
-                    "scenario sets the conveyor's plant: give no plant, and stack conveyor"
-                )
-            plant = PlantSpec("conveyor", scenario_options(self.scenario))
-        if isinstance(plant, Mapping):
-            plant = from_mapping(PlantSpec, plant, where="plant")
-        if not isinstance(plant, PlantSpec):
-            raise ValueError(f"plant must be a table (name, options), got {plant!r}")
-        object.__setattr__(self, "plant", plant)
-        for name in ("trials", "workers"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-                raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
-        if self.max_steps is not None and self.max_steps < 1:
-            raise ValueError(f"max_steps must be >= 1 or None, got {self.max_steps!r}")
-        if not 0.0 < self.success_target <= 1.0:
-            raise ValueError(f"success_target must be in (0, 1], got {self.success_target!r}")
-        check_range("trials", self.trials, cap=EPISODES_CAP)
-        check_range("workers", self.workers, cap=WORKERS_CAP)
-        check_range("max_steps", self.max_steps, cap=STEPS_CAP)
-        robots = sum(len(self.robots_of(c)) for c in self.channels)
-        n_trials = robots * len(self.schedulers) * len(pipelines) * self.trials
-        check_range("the number of trials of the sweep", n_trials, cap=EPISODES_CAP)
-        for pipeline in pipelines.values():  # kinds, checkpoints and options, checked now
-            for role in ("controller", "estimator", "qos"):
-                spec = getattr(pipeline, role)
-                if role == "qos" and spec.kind in QOS_RULES:
-                    rule, takes_env = _RULE_SIGNATURES[spec.kind]
-                    check_options(
-                        f"qos kind {spec.kind!r}", rule, spec.options, takes_env=takes_env
-                    )
-                else:
-                    factory(role, spec)
-
-    def robots_of(self, channel: str) -> tuple[int, ...]:
-        """Robot counts simulated on ``channel``."""
-        return self.robots_by_channel.get(channel, self.robots)
-
-    def points(self) -> list[dict[str, Any]]:
-        """Every (channel, scheduler, pipeline, robots, trial) of the sweep, in grid order."""
-        return [
-            {"channel_name": c, "scheduler": s, "pipeline_name": p, "n_robots": n, "trial": k}
-            for c in self.channels
-            for s in self.schedulers
-            for p in self.pipelines
-            for n in self.robots_of(c)
-            for k in range(self.trials)
-        ]
 
 
 def _build(role: str, spec: Any, env: Any) -> Any:
@@ -363,7 +82,9 @@ def run_point(
 ) -> dict[str, Any]:
     """One trial of one point: N robots, one episode; returns success and network figures.
 
-    With an MPC, ``mpc_failures`` is its failed solves summed over the N robots.
+    ``successes`` is the number of robots whose task succeeded, ``success_rate`` their
+    fraction; ``delivered_fraction`` the steps whose state arrived in time, over every
+    robot's steps. With an MPC, ``mpc_failures`` is its failed solves summed over the robots.
     """
 
     pipeline = config.pipelines[pipeline_name]
@@ -390,6 +111,7 @@ def run_point(
         "pipeline": pipeline_name,
         "robots": n_robots,
         "trial": trial,
+        "successes": int(sum(successes)),
         "success_rate": float(np.mean(successes)),
         "mean_reliability": float(np.nanmean(summary["mean_reliability"])),
         "delivered_fraction": float(summary["delivered"].sum() / max(summary["steps"].sum(), 1)),
@@ -419,17 +141,28 @@ def _run_point_kwargs(args: tuple[CapacityConfig, dict[str, Any]]) -> dict[str, 
     return run_point(config, **kwargs)
 
 
+def _curve(point: Mapping[str, Any]) -> tuple[str, str, str]:
+    return point["channel_name"], point["scheduler"], point["pipeline_name"]
+
+
 def run_capacity(
     config: CapacityConfig,
     *,
     progress: Callable[[Iterable[Any]], Iterable[Any]] | None = None,
     store: RecordStore | None = None,
 ) -> pd.DataFrame:
-    """Every trial of every point of the sweep, one row each (tidy), in grid order.
+    """Every trial of every point run, one row each (tidy), in grid order.
+
+    The robot counts run in ascending order, in rounds: round ``r`` is every running curve's
+    ``r``-th count of its channel, all its trials (in parallel with ``config.workers``). After
+    a round, a curve whose mean success at that count is below ``config.stop_below`` stops:
+    its larger counts are not run and have no rows. ``progress`` wraps the stream of finished
+    trials (at most ``len(config.points())``).
 
     ``store`` keeps every finished trial and gives back those of an earlier run
     (:mod:`codesign_mb.core.records`), keyed by the plant, root seed and step cap, and by the
-    point: its channel's cell, scheduler, pipeline stack, robot count and trial.
+    point: its channel's cell, scheduler, pipeline stack, robot count and trial. A resumed
+    run takes the same stops, so it gives the same table.
     """
     points = config.points()
     rows: list[dict[str, Any] | None] = [None] * len(points)
@@ -441,18 +174,40 @@ def run_capacity(
         items = [_point_key(config, point) for point in points]
         kept = store.take(group, items)
         rows = [kept.get(item) for item in items]
+    rank = [config.robots_of(p["channel_name"]).index(p["n_robots"]) for p in points]
+    stopped: set[tuple[str, str, str]] = set()
+    ran: list[int] = []  # the points of the rounds run, stored or computed
 
     def finished() -> Iterator[dict[str, Any]]:
-        yield from (row for row in list(rows) if row is not None)
-        todo = [k for k, row in enumerate(rows) if row is None]
-        for k, row in _compute(config, points, todo):
-            done = row if store is None else store.add(group, items[k], row)
-            rows[k] = done
-            yield done
+        for r in range(max(rank, default=-1) + 1):
+            members = [k for k in range(len(points)) if rank[k] == r]
+            members = [k for k in members if _curve(points[k]) not in stopped]
+            ran.extend(members)
+            for k in members:
+                stored = rows[k]
+                if stored is not None:
+                    yield stored
+            todo = [k for k in members if rows[k] is None]
+            for k, row in _compute(config, points, todo):
+                done = row if store is None else store.add(group, items[k], row)
+                rows[k] = done
+                yield done
+            rates: dict[tuple[str, str, str], list[float]] = {}
+            for k in members:
+                rates.setdefault(_curve(points[k]), []).append(_row(rows, k)["success_rate"])
+            below = config.stop_below - 1e-12  # as capacity_table reads it
+            stopped.update(c for c, v in rates.items() if float(np.mean(v)) < below)
 
     for _ in progress(finished()) if progress is not None else finished():
         pass
-    return pd.DataFrame(rows)
+    return pd.DataFrame([_row(rows, k) for k in sorted(ran)])
+
+
+def _row(rows: list[dict[str, Any] | None], k: int) -> dict[str, Any]:
+    row = rows[k]
+    if row is None:
+        raise RuntimeError(f"point {k} of the capacity sweep has no row")  # unreachable
+    return row
 
 
 def _point_key(config: CapacityConfig, point: Mapping[str, Any]) -> str:
@@ -467,6 +222,8 @@ def _compute(
     config: CapacityConfig, points: list[dict[str, Any]], todo: list[int]
 ) -> Iterator[tuple[int, dict[str, Any]]]:
     """``(point index, row)`` of the points ``todo``, as each finishes."""
+    if not todo:
+        return
     if config.workers == 1:
         for k in todo:
             yield k, run_point(config, **points[k])
@@ -480,23 +237,47 @@ def _compute(
         yield order[i], row
 
 
-def capacity_table(results: pd.DataFrame, *, success_target: float = 0.95) -> pd.DataFrame:
-    """Per curve: mean success per robot count and the capacity.
+_CURVE = ["channel", "scheduler", "pipeline"]
 
-    A curve's capacity is the largest robot count up to which every simulated count reaches
-    ``success_target`` (0 if the smallest does not). ``mean_reliability`` and
-    ``delivered_fraction`` are NaN when ``results`` has no such column; ``mpc_failures`` (the
-    trials' sum) is there when ``results`` has it, and so is ``allocator_fallbacks``.
+
+def capacity_table(
+    results: pd.DataFrame,
+    *,
+    success_target: float = 0.95,
+    stop_below: float = 0.0,
+    confidence: float = 0.95,
+) -> pd.DataFrame:
+    """Per curve and robot count: success with its Wilson interval, QoS, and the capacity.
+
+    ``success_rate`` is the mean of the trials' (all trials of a point have N robots: the
+    success pooled over its ``robot_episodes``), ``success_ci_low`` and ``success_ci_high``
+    its Wilson interval at ``confidence`` over the robot-episodes (optimistic: the robots of
+    a trial share the channel, so they are not independent draws); the successes are the
+    trials' ``successes``, or ``round(success_rate * robots)`` without that column.
+    ``mean_reliability`` (requested) and ``delivered_fraction`` are the trials' means (NaN
+    when ``results`` has no such column); ``mpc_failures`` (the trials' sum) is there when
+    ``results`` has it, and so is ``allocator_fallbacks``.
+
+    Per curve: ``capacity_robots`` is the largest robot count up to which every simulated
+    count reaches ``success_target`` (0 if the smallest does not); ``capacity_censored``
+    says it is the curve's largest count run (the capacity is at least that);
+    ``stopped_at_robots`` is the count whose success fell below ``stop_below`` (the sweep's
+    early stop: no larger count was run), NaN when none did or ``stop_below`` is 0.
     """
-    keys = ["channel", "scheduler", "pipeline", "robots"]
+    keys = [*_CURVE, "robots"]
     results = results.assign(
         **{c: math.nan for c in ("mean_reliability", "delivered_fraction") if c not in results}
     )
+    if "successes" not in results:
+        results = results.assign(successes=(results["success_rate"] * results["robots"]).round())
+    results = results.assign(robot_episodes=results["robots"])
     sums = {c: (c, _sum_or_nan) for c in ("mpc_failures", "allocator_fallbacks") if c in results}
     curves = (
         results.groupby(keys, as_index=False)
         .agg(
             success_rate=("success_rate", "mean"),
+            successes=("successes", "sum"),
+            robot_episodes=("robot_episodes", "sum"),
             mean_reliability=("mean_reliability", "mean"),
             delivered_fraction=("delivered_fraction", "mean"),
             trials=("success_rate", "size"),
@@ -504,16 +285,71 @@ def capacity_table(results: pd.DataFrame, *, success_target: float = 0.95) -> pd
         )
         .sort_values(keys)
     )
+    intervals = [
+        wilson_interval(int(k), int(n), confidence)
+        for k, n in zip(curves["successes"], curves["robot_episodes"], strict=True)
+    ]
+    curves["success_ci_low"] = [low for low, _ in intervals]
+    curves["success_ci_high"] = [high for _, high in intervals]
     caps = []
-    for key, group in curves.groupby(keys[:3]):
-        capacity = 0
+    for key, group in curves.groupby(_CURVE):
+        capacity, stopped = 0, math.nan
+        for n, rate in zip(group["robots"], group["success_rate"], strict=True):
+            if rate < stop_below - 1e-12:
+                stopped = int(n)
+                break
         for n, rate in zip(group["robots"], group["success_rate"], strict=True):
             if rate < success_target - 1e-12:
                 break
             capacity = int(n)
-        caps.append((*key, capacity))
-    cap = pd.DataFrame(caps, columns=[*keys[:3], "capacity_robots"])
-    return curves.merge(cap, on=keys[:3])
+        censored = capacity == int(group["robots"].max())
+        caps.append((*key, capacity, censored, stopped))
+    columns = [*_CURVE, "capacity_robots", "capacity_censored", "stopped_at_robots"]
+    return curves.merge(pd.DataFrame(caps, columns=columns), on=_CURVE)
+
+
+def capacity_ratios(
+    curves: pd.DataFrame, *, codesign: str = "codesign", static: str = "static"
+) -> pd.DataFrame:
+    """Per cell and scheduler: the co-design pipeline's capacity over the static one's.
+
+    ``curves`` is :func:`capacity_table`'s. ``bound`` says what the ratio is: ``"exact"``,
+    ``"at least"`` (the co-design curve held the target up to its largest count, so its
+    capacity may be larger), ``"at most"`` (the static one did), ``"unknown"`` (both did).
+    A static capacity of 0 gives an infinite ratio (NaN if both are 0). Empty when
+    ``curves`` lacks either pipeline.
+    """
+    per_curve = curves.drop_duplicates(_CURVE).set_index(_CURVE)
+    rows = []
+    cells = zip(curves["channel"], curves["scheduler"], strict=True)
+    for channel, scheduler in dict.fromkeys(cells):
+        try:
+            c = per_curve.loc[(channel, scheduler, codesign)]
+            s = per_curve.loc[(channel, scheduler, static)]
+        except KeyError:
+            continue
+        c_cap, s_cap = int(c["capacity_robots"]), int(s["capacity_robots"])
+        c_open = bool(c.get("capacity_censored", False))
+        s_open = bool(s.get("capacity_censored", False))
+        ratio = c_cap / s_cap if s_cap else (math.inf if c_cap else math.nan)
+        bound = {
+            (False, False): "exact",
+            (True, False): "at least",
+            (False, True): "at most",
+            (True, True): "unknown",
+        }[(c_open, s_open)]
+        rows.append(
+            {
+                "channel": channel,
+                "scheduler": scheduler,
+                "static_capacity": s_cap,
+                "codesign_capacity": c_cap,
+                "ratio": ratio,
+                "bound": bound,
+            }
+        )
+    columns = ["channel", "scheduler", "static_capacity", "codesign_capacity", "ratio", "bound"]
+    return pd.DataFrame(rows, columns=columns)
 
 
 def _sum_or_nan(values: pd.Series) -> float:

@@ -19,6 +19,7 @@ from codesign_mb.core.results import write_results
 from codesign_mb.studies.fig_wifi import (
     CHANNEL_PRESETS,
     CapacityConfig,
+    capacity_ratios,
     capacity_table,
     describe_channel,
     run_capacity,
@@ -57,22 +58,21 @@ def curve_styles(pipelines: list[str], schedulers: list[str]) -> dict[tuple[str,
     return styles
 
 
-def capacity_curves(results: pd.DataFrame, *, success_target: float = 0.95) -> pd.DataFrame:
+def capacity_curves(
+    results: pd.DataFrame, *, success_target: float = 0.95, stop_below: float = 0.0
+) -> pd.DataFrame:
     """:func:`~codesign_mb.studies.fig_wifi.capacity_table` with the band of each point.
 
     ``band_low`` and ``band_high`` are the mean of the columns of that name when ``results``
-    has them (e.g. a Wilson interval per point), else the spread of the trials' success
-    rates (min-max).
+    has them (a summary's interval per point), else the point's 95 % Wilson interval over
+    its robot-episodes (``success_ci_low``, ``success_ci_high``).
     """
     keys = ["channel", "scheduler", "pipeline", "robots"]
-    curves = capacity_table(results, success_target=success_target)
-    grouped = results.groupby(keys)
-    band: pd.DataFrame = (
-        grouped[["band_low", "band_high"]].mean()
-        if "band_low" in results and "band_high" in results
-        else grouped.agg(band_low=("success_rate", "min"), band_high=("success_rate", "max"))
-    )
-    return curves.merge(band.reset_index(), on=keys)
+    curves = capacity_table(results, success_target=success_target, stop_below=stop_below)
+    if "band_low" in results and "band_high" in results:
+        band = results.groupby(keys)[["band_low", "band_high"]].mean().reset_index()
+        return curves.merge(band, on=keys)
+    return curves.assign(band_low=curves["success_ci_low"], band_high=curves["success_ci_high"])
 
 
 def plot_capacity(
@@ -80,23 +80,27 @@ def plot_capacity(
     path: str | Path,
     *,
     success_target: float = 0.95,
+    stop_below: float = 0.0,
     dpi: int = 130,
 ) -> Path:
     """Fig. 6 as a PNG: per channel, success (top) and requested reliability (bottom) vs N.
 
     One colour and marker per pipeline (static QoS filled, co-design hollow and larger), one
     line style per scheduler (greedy solid, convex dashed), each curve shifted a little
-    sideways so that coinciding curves stay visible; the band is the spread of the trials'
-    success rates (min-max), or the given ``band_low`` and ``band_high``
-    (:func:`capacity_curves`). ``results`` has
+    sideways so that coinciding curves stay visible; the band is each point's 95 % Wilson
+    interval over its robot-episodes, or the given ``band_low`` and ``band_high``
+    (:func:`capacity_curves`). The legend gives each curve's capacity (robots at
+    ``success_target``) and, with ``stop_below``, where it stopped. ``results`` has
     :func:`~codesign_mb.studies.fig_wifi.run_capacity`'s columns ``channel``, ``scheduler``,
     ``pipeline``, ``robots`` and ``success_rate``; the bottom row of panels (requested
     ``mean_reliability``, ``delivered_fraction``) is drawn when one of them is given.
     """
-    curves = capacity_curves(results, success_target=success_target)
+    curves = capacity_curves(results, success_target=success_target, stop_below=stop_below)
     channels = list(dict.fromkeys(results["channel"]))
     pipelines = list(dict.fromkeys(results["pipeline"]))
-    styles = curve_styles(pipelines, [str(s) for s in dict.fromkeys(results["scheduler"])])
+    schedulers = list(dict.fromkeys(results["scheduler"]))
+    styles = curve_styles(pipelines, [str(s) for s in schedulers])
+    order = [(s, p) for p in pipelines for s in schedulers]
     bottom = any(
         c in results and results[c].notna().any()
         for c in ("mean_reliability", "delivered_fraction")
@@ -105,26 +109,38 @@ def plot_capacity(
     for c, channel in enumerate(channels):
         part = curves[curves["channel"] == channel]
         span = max(float(part["robots"].max() - part["robots"].min()), 1.0) if len(part) else 1.0
-        for (scheduler, pipeline), line in part.groupby(["scheduler", "pipeline"], sort=False):
+        for scheduler, pipeline in order:  # as run: the legend lists them so
+            line = part[(part["scheduler"] == scheduler) & (part["pipeline"] == pipeline)]
+            if not len(line):
+                continue
             style = dict(styles[(str(scheduler), pipeline)])
             style["dodge"] *= span
             name = ", ".join(str(v) for v in (pipeline, scheduler) if str(v))
-            _curve(axes[:, c], line.sort_values("robots"), name, style, success_target)
+            _curve(axes[:, c], line.sort_values("robots"), name, style, success_target, stop_below)
         _channel_axes(axes[:, c], str(channel), success_target)
     fig.suptitle("Task success vs robots on one WiFi 6 channel (fig_wifi)", fontsize=10)
     return save_png(fig, path, dpi=dpi)
 
 
 def _curve(
-    axes: Any, line: pd.DataFrame, name: str, style: dict[str, Any], success_target: float
+    axes: Any,
+    line: pd.DataFrame,
+    name: str,
+    style: dict[str, Any],
+    success_target: float,
+    stop_below: float,
 ) -> None:
     """One (scheduler, pipeline) curve: success with its band on top, reliability below."""
     dodge = style.pop("dodge")
     colour = style["color"]
     cap = int(line["capacity_robots"].iloc[0])
-    largest = int(line["robots"].max())
-    reach = f">= {cap} robots" if cap == largest else f"{cap} robots" if cap else "none"
-    label = f"{name} (at {success_target:.0%}: {reach})"
+    robots = f"{cap} robot{'' if cap == 1 else 's'}"
+    reach = f">= {robots}" if line["capacity_censored"].iloc[0] else robots if cap else "none"
+    label = f"{name} (at {success_target:.0%}: {reach}"
+    stopped = line["stopped_at_robots"].iloc[0]
+    if stopped == stopped:  # not NaN: the sweep stopped this curve there
+        label += f"; < {stop_below:.0%} at {int(stopped)}: no larger N run"
+    label += ")"
     x = line["robots"].to_numpy() + dodge
     axes[0].plot(x, line["success_rate"], label=label, **style)
     axes[0].fill_between(x, line["band_low"], line["band_high"], color=colour, alpha=0.08, lw=0)
@@ -137,7 +153,7 @@ def _channel_axes(axes: Any, channel: str, success_target: float) -> None:
     top = axes[0]
     top.axhline(success_target, color="0.5", lw=0.8, ls=":")
     top.set_ylim(-0.02, 1.05)
-    top.set_ylabel("task success rate")
+    top.set_ylabel("task success (95 % Wilson band)", fontsize=8)
     title = f"{channel}: {describe_channel(channel)}" if channel in CHANNEL_PRESETS else channel
     top.set_title(title, fontsize=8)
     top.grid(alpha=0.3)
@@ -160,16 +176,19 @@ def run_capacity_study(
 ) -> tuple[pd.DataFrame, pd.DataFrame, dict[str, Path]]:
     """Run the capacity sweep and write Fig. 6 into ``out_dir``.
 
-    Writes ``fig_wifi.{parquet,csv,json}`` (one row per trial; the curves with their capacity
-    in the metadata) and ``fig_wifi.png`` (:func:`plot_capacity`). Returns the trials, the
-    curves (:func:`~codesign_mb.studies.fig_wifi.capacity_table`) and the files (``parquet``,
-    ``csv``, ``json``, ``png``). Finished trials are kept in ``<out_dir>/.records`` and
-    reused by a rerun (``fresh``: none are).
+    Writes ``fig_wifi.{parquet,csv,json}`` (one row per trial; in the metadata the curves
+    with their capacity, the co-design/static capacity ratio per cell and scheduler
+    (:func:`~codesign_mb.studies.fig_wifi.capacity_ratios`) and the robot-episodes: at most
+    ``planned``, ``run`` with the early stop) and ``fig_wifi.png`` (:func:`plot_capacity`).
+    Returns the trials, the curves (:func:`~codesign_mb.studies.fig_wifi.capacity_table`)
+    and the files (``parquet``, ``csv``, ``json``, ``png``). Finished trials are kept in
+    ``<out_dir>/.records`` and reused by a rerun (``fresh``: none are).
     """
     store = RecordStore(Path(out_dir) / RECORDS_DIR, what="trial", fresh=fresh)
     with store.on_interrupt():
         results = run_capacity(config, progress=progress, store=store)
-    curves = capacity_table(results, success_target=config.success_target)
+    target, stop = config.success_target, config.stop_below
+    curves = capacity_table(results, success_target=target, stop_below=stop)
     files = dict(
         write_results(
             out_dir,
@@ -178,12 +197,17 @@ def run_capacity_study(
             name="fig_wifi",
             extra={
                 "curves": curves.to_dict("records"),
+                "capacity_ratios": capacity_ratios(curves).to_dict("records"),
+                "robot_episodes": {
+                    "planned": config.robot_episodes(),
+                    "run": int(results["robots"].sum()) if len(results) else 0,
+                },
                 "computed": store.computed,
                 "reused": store.reused,
             },
         )
     )
     files["png"] = plot_capacity(
-        results, Path(out_dir) / "fig_wifi.png", success_target=config.success_target
+        results, Path(out_dir) / "fig_wifi.png", success_target=target, stop_below=stop
     )
     return results, curves, files

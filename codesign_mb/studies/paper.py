@@ -106,10 +106,11 @@ MANIFEST = "paper.json"
 """The manifest of the results folder."""
 
 FIG_WIFI_GRID: dict[str, Any] = {
-    "robots": (1, 2, 4, 6, 7, 8, 10, 12, 16, 24),
-    "robots_by_channel": {"better": (8, 16, 24, 32)},
-    "channels": ("paper", "better"),
+    "stack": "realistic",
+    "robots": (1, 2, 4, 6, 8, 12, 16, 24, 32, 40, 48),
+    "channels": ("paper",),
     "schedulers": ("greedy", "convex"),
+    "stop_below": 0.5,
 }
 """Fig. 6's grid, the same as ``configs/fig_wifi.toml`` (a test checks they agree)."""
 
@@ -120,8 +121,8 @@ _SMOKE: dict[str, dict[str, Any]] = {
     "fig_wifi": {
         "trials": 1,
         "robots": (1, 2),
-        "robots_by_channel": {},
         "channels": ("paper",),
+        "schedulers": ("greedy",),
         "max_steps": 40,
     },
 }
@@ -149,7 +150,8 @@ class PaperConfig:
     fig_cn_trials:
         Episodes per point of Fig. 4 (64 points).
     wifi_trials:
-        Trials (N-robot episodes) per point of Fig. 6.
+        Trials (N-robot episodes) per point of Fig. 6 (a point's success is pooled over its
+        ``trials x N`` robot-episodes).
     lqg_episodes:
         Episodes per reliability of the linear baseline.
     workers:
@@ -169,7 +171,7 @@ class PaperConfig:
     realistic_trials: int = 200
     model_free_trials: int = 200
     fig_cn_trials: int = 100
-    wifi_trials: int = 5
+    wifi_trials: int = 20
     lqg_episodes: int = 8
     workers: int | None = None
     seeds: str = "test"
@@ -267,8 +269,9 @@ def study_command(name: str, settings: Mapping[str, Any]) -> str:
             return base
         robots = ",".join(str(n) for n in s["robots"])
         return (
-            f"codesign wifi capacity --robots {robots} --channels {','.join(s['channels'])} "
-            f"--schedulers {','.join(s['schedulers'])} --trials {s['trials']}"
+            f"codesign wifi capacity --stack {s['stack']} --robots {robots} "
+            f"--channels {','.join(s['channels'])} --schedulers {','.join(s['schedulers'])} "
+            f"--stop-below {s['stop_below']:g} --trials {s['trials']}"
             + (f" --max-steps {s['max_steps']}" if s.get("max_steps") else "")
             + f" {seed}"
         )

@@ -113,11 +113,12 @@ def _summary(name: str, folder: Path) -> dict[str, Any]:
     if name == "fig_cn":
         return {"points": _records(results.table("fig_cn"), _FIG_CN_COLUMNS)}
     if name == "fig_wifi":
-        from codesign_mb.studies.fig_wifi import capacity_table, describe_channel
+        from codesign_mb.studies.fig_wifi import capacity_ratios, capacity_table, describe_channel
 
         config = results.config("fig_wifi")
         target = float(config.get("success_target", 0.95))
-        curves = capacity_table(results.table("fig_wifi"), success_target=target)
+        stop = float(config.get("stop_below", 0.0))
+        curves = capacity_table(results.table("fig_wifi"), success_target=target, stop_below=stop)
         present = set(curves["channel"].astype(str))
         order = [str(c) for c in config.get("channels", [])]  # as configured, then the rest
         order += sorted(present - set(order))
@@ -128,6 +129,7 @@ def _summary(name: str, folder: Path) -> dict[str, Any]:
             "plant": config.get("plant"),
             "pipelines": {k: _stack(v) for k, v in config.get("pipelines", {}).items()},
             "curves": curves,
+            "capacity_ratios": capacity_ratios(curves).to_dict("records"),
         }
     raise ValueError(f"no README summary for study {name!r}")
 

@@ -328,6 +328,7 @@ def fig_wifi_section(study: Study, figures_url: str) -> str:
         "the 1 ms OFDMA simulator): task success per number of robots N sharing one channel, "
         f"and the most robots up to which every N simulated reaches {pct(target)}. "
         + _stacks(study)
+        + _wifi_method(study)
     ]
     pipelines = list(study.get("pipelines", {}))
     schedulers = list(study.get("settings", {}).get("schedulers", []))
@@ -343,18 +344,24 @@ def fig_wifi_section(study: Study, figures_url: str) -> str:
         mine = [c for c in curves if c["channel"] == channel]
         ns = sorted({int(c["robots"]) for c in mine})
         lines: dict[tuple[str, str], dict[int, str]] = {}
-        capacity: dict[tuple[str, str], int] = {}
+        capacity: dict[tuple[str, str], str] = {}
         for c in mine:
             key = (str(c["pipeline"]), str(c["scheduler"]))
-            lines.setdefault(key, {})[int(c["robots"])] = pct(c["success_rate"])
-            capacity[key] = int(c["capacity_robots"])
+            cell = pct(c["success_rate"])
+            if _finite(c.get("success_ci_low")):  # the Wilson interval, where recorded
+                cell += f" {ci(c['success_ci_low'], c['success_ci_high'])}"
+            lines.setdefault(key, {})[int(c["robots"])] = cell
+            cap = int(c["capacity_robots"])
+            censored = c["capacity_censored"] if "capacity_censored" in c else cap == max(ns)
+            capacity[key] = f">= {cap}" if censored else str(cap)
+            at = c.get("stopped_at_robots")
+            if _finite(at):  # the sweep stopped this curve there
+                lines[key].update({n: "not run" for n in ns if n > at and n not in lines[key]})
         rows = [
             [
                 f"{pipeline}, {scheduler}",
                 *(cells.get(n, "") for n in ns),
-                f">= {capacity[(pipeline, scheduler)]}"
-                if capacity[(pipeline, scheduler)] == max(ns)
-                else str(capacity[(pipeline, scheduler)]),
+                capacity[(pipeline, scheduler)],
             ]
             for (pipeline, scheduler), cells in sorted(lines.items(), key=lambda kv: order(kv[0]))
         ]
@@ -365,8 +372,36 @@ def fig_wifi_section(study: Study, figures_url: str) -> str:
                 rows,
             ),
         ]
+        ratios = [r for r in study.get("capacity_ratios", []) if r["channel"] == channel]
+        if ratios:
+            parts.append(
+                "Co-design over static capacity: "
+                + "; ".join(
+                    f"{r['scheduler']} {r['codesign_capacity']} / {r['static_capacity']} = "
+                    f"{_g(round(float(r['ratio']), 2))} ({r['bound']})"
+                    for r in ratios
+                )
+                + "."
+            )
     parts.append(_figures(study, figures_url))
     return _paragraphs(*parts)
+
+
+def _wifi_method(study: Study) -> str:
+    """How Fig. 6's points were run and what their interval is (recorded by newer runs)."""
+    stop = study.get("settings", {}).get("stop_below")
+    if stop is None:
+        return ""
+    text = (
+        " A point's success is pooled over its trials x N robot-episodes, with its 95 % "
+        "Wilson interval (optimistic: the robots of a trial share the channel)"
+    )
+    if stop:
+        text += (
+            f"; robot counts run in ascending order and a curve stops once its success at "
+            f"one is below {pct(float(stop))} (its larger N: not run)"
+        )
+    return text + "."
 
 
 def _stacks(study: Study) -> str:

@@ -387,6 +387,9 @@ def _render_fig_lat(frame: pd.DataFrame, out: Path, cfg: ReportConfig) -> Sectio
 
 def _render_fig_wifi(frame: pd.DataFrame, out: Path, cfg: ReportConfig) -> Section:
     labels = labels_of(frame)
+    pooled = "successes" in frame.columns and "trials" not in frame.columns
+    if pooled:  # ``codesign wifi capacity``'s trials: a trial counts N robot-episodes
+        frame = frame.assign(trials=frame["n_robots"])
     summary = success_summary(frame, [*labels, "n_robots"], confidence=cfg.confidence)
     figure = fig_wifi_figures.plot_capacity(
         _capacity_points(summary, labels), out / "fig_wifi.png", dpi=cfg.dpi
@@ -394,7 +397,14 @@ def _render_fig_wifi(frame: pd.DataFrame, out: Path, cfg: ReportConfig) -> Secti
     table = _pivot(summary, labels, "n_robots", "N=")
     text = (
         "Success rate versus the number of robots N, with and without control-aware QoS "
-        "adaptation.\n\n"
+        "adaptation."
+        + (
+            " A point pools its trials' robot-episodes (their number in brackets); the band is "
+            f"its {cfg.confidence:.0%} Wilson interval."
+            if pooled
+            else ""
+        )
+        + "\n\n"
         f"![Fig. 6](./{figure.name})\n\n"
         + _failures(summary, labels)
         + _markdown_table(table)

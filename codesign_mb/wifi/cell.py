@@ -18,6 +18,10 @@ Channel process
 Distances are drawn once per episode, Rician block-fading gains once per coherence block per
 station (the same for UL and DL), then link adaptation picks each hop's MCS (``choose_mcs``).
 A frame's fate on each hop is drawn when it is admitted, with that hop's delivery probability.
+``eq_drop``'s ``q0`` is the station's own link-level delivery in the current block (the product
+of its hops' delivery probabilities, :attr:`ChannelProcess.delivery`), not a configured
+constant, so a robot that asks for ``q`` on an unloaded link gets ``q`` (or all the link
+delivers, when that is less).
 """
 
 from __future__ import annotations
@@ -69,6 +73,12 @@ class ChannelProcess:
         while self._block < block:
             self._block += 1
             self._draw()
+
+    @property
+    def delivery(self) -> NDArray[np.float64]:
+        """Per station, the probability that a frame's UL and DL hops both get through in
+        the current block: the link-level PDR ``q0`` of ``eq_drop``."""
+        return self.ul_pdr * self.dl_pdr
 
     def _draw(self) -> None:
         ch, phy = self.config.channel, self.config.phy
@@ -239,9 +249,7 @@ class SharedChannel:
         self.process.at(cap)
         # eq_drop: one uniform per step whatever q is, so streams align across QoS policies.
         u = st.rng.random()
-        admitted = qos.reliability > 0 and u >= drop_probability(
-            qos.reliability, self.config.channel.q0
-        )
+        admitted = qos.reliability > 0 and u >= self._drop_probability(station, qos.reliability)
         fate = self._fate_rng.random(2)  # drawn for every step, admitted or not
         st.requested += qos.reliability
         st.steps += 1
@@ -265,6 +273,18 @@ class SharedChannel:
         arrived.clear()
         st.t = t + 1
         return buffer.receive(t, delivered=admitted, like=value)
+
+    def _drop_probability(self, station: int, reliability: float) -> float:
+        """``eq_drop`` with ``q0`` the station's own link delivery in this coherence block.
+
+        ``q0`` is :attr:`ChannelProcess.delivery` (the product of the station's UL and DL
+        frame delivery probabilities at the MCS link adaptation chose, which the AP knows), so
+        an unloaded link delivers a frame with probability ``q`` when ``q <= q0`` and ``q0``
+        above. A link that delivers nothing (``q0 = 0``) drops nothing: the limit as ``q0``
+        falls to 0.
+        """
+        link = float(self.process.delivery[station])
+        return drop_probability(reliability, link) if link > 0.0 else 0.0
 
     def close(self, station: int) -> None:
         """The robot of ``station`` left (episode over): drop its queue, stop waiting for it."""
@@ -297,9 +317,11 @@ class WifiLink:
     """Station ``index`` of a :class:`SharedChannel`, as a :class:`codesign_mb.network.Link`.
 
     :meth:`step` sends ``x_t`` as a camera frame (dropped before the queue with probability
-    ``1 - q/q0``, ``eq_drop``) with deadline ``tau`` steps, advances the shared channel to
-    this robot's step ``t`` and returns what has arrived. ``Reception.delivered`` is whether
-    the frame was admitted to the queue: whether it arrives in time is known only later.
+    ``1 - q/q0``, ``eq_drop``, ``q0`` this station's link delivery in the current coherence
+    block: :attr:`ChannelProcess.delivery`) with deadline ``tau`` steps, advances the shared
+    channel to this robot's step ``t`` and returns what has arrived. ``Reception.delivered``
+    is whether the frame was admitted to the queue: whether it arrives in time is known only
+    later.
     """
 
     def __init__(self, channel: SharedChannel, index: int) -> None:

@@ -1,4 +1,4 @@
-"""Per-station channel, packet error rate per MCS, and link adaptation to a delivery target q0.
+"""Per-station channel, packet error rate per MCS, and link adaptation to a delivery target.
 
 SNR ([snr])
 ----------------
@@ -24,8 +24,11 @@ implementation margin. A frame of ``L`` bytes is delivered with ``(1 - PER_m)^(L
 Link adaptation
 ---------------
 Each hop (UL camera frame, DL state frame) uses the highest MCS whose frame delivery
-probability is at least ``sqrt(q0)``, so the two hops together deliver ``q0`` (the paper's
-link-level PDR, ``eq_drop``); if none reaches it, MCS 0.
+probability is at least ``sqrt(q0)``, so the two hops together deliver at least ``q0``; if none
+reaches it, MCS 0. ``q0`` here is the *target* of link adaptation only: ``eq_drop`` divides by
+the delivery the chosen MCS actually achieves in the block
+(:attr:`codesign_mb.wifi.cell.ChannelProcess.delivery`), which is ``q0`` or more, or less when
+even MCS 0 misses the target.
 """
 
 from __future__ import annotations
@@ -135,7 +138,10 @@ class ChannelConfig:
     per_slope_per_db:
         Slope ``a`` of the logistic PER curves ([per]).
     q0:
-        Link-level delivery target of the chosen MCS (``eq_drop``), end to end (UL then DL).
+        Link adaptation's delivery target, end to end (UL then DL): each hop's MCS is the
+        highest whose delivery is at least ``sqrt(q0)``. Unused with ``fixed_mcs``. It is not
+        ``eq_drop``'s divisor, which is the delivery the chosen MCS achieves
+        (:attr:`codesign_mb.wifi.cell.ChannelProcess.delivery`).
     fixed_mcs:
         If set, every station uses this MCS (no link adaptation); the delivery probability
         still follows from the SNR.

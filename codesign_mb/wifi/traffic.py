@@ -6,7 +6,8 @@ must arrive before the robot reads its observation at step ``t + tau`` (its late
 i.e. by ``capture + tau * period`` ([deadline]): a state reaches the robot only if its
 camera frame and then its state frame arrive in time. Before the queue, a frame is dropped with
 probability ``1 - q / q0`` (``eq_drop``), so that with a link-level delivery ``q0`` the frame is
-delivered with probability ``q``.
+delivered with probability ``q``; in the cell (:class:`codesign_mb.wifi.cell.SharedChannel`)
+``q0`` is each station's own delivery in the current coherence block.
 """
 
 from __future__ import annotations
@@ -23,7 +24,10 @@ CAPTURE_MODES = ("staggered", "synchronised")
 
 
 def drop_probability(reliability: float, q0: float) -> float:
-    """``eq_drop``: ``1 - q / q0``, clipped to [0, 1] (``q >= q0`` is never dropped)."""
+    """``eq_drop``: ``1 - q / q0``, clipped to [0, 1] (``q >= q0`` is never dropped).
+
+    ``q0`` is the link-level delivery probability of the frame (its UL and DL hops), in (0, 1].
+    """
     if not 0.0 < q0 <= 1.0:
         raise ValueError(f"q0 must be in (0, 1], got {q0!r}")
     return min(1.0, max(0.0, 1.0 - reliability / q0))
