@@ -249,3 +249,36 @@ def test_airtime_prices_separate_the_frames_the_optimum_sends():
     assert (f["ul_bill"] > 1 + 1e-6).any()
     assert (f.loc[f["ul_bill"] > 1 + 1e-6, "delivered"] < 1e-6).all()
     assert (f.loc[f["delivered"] > 1 - 1e-6, "ul_bill"] <= 1 + 1e-6).all()
+
+
+def test_capacity_not_significantly_below_the_target_reads_the_wilson_upper_bound():
+    # 20 trials per point: N = 1 19/20 (95 %), N = 2 37/40 (92.5 %), N = 4 70/80 (87.5 %)
+    per_trial = {1: [1] * 19 + [0], 2: [2] * 17 + [1] * 3, 4: [4] * 10 + [3] * 10}
+    rows = [
+        {
+            "channel": "c",
+            "scheduler": "greedy",
+            "pipeline": p,
+            "robots": n,
+            "trial": t,
+            "success_rate": k / n,
+            "successes": k,
+        }
+        for p in ("codesign", "static")
+        for n, ks in per_trial.items()
+        for t, k in enumerate(ks)
+    ]
+    curves = capacity_table(pd.DataFrame(rows))
+    high = {
+        n: binomtest(sum(ks), n * len(ks)).proportion_ci(0.95, method="wilson").high
+        for n, ks in per_trial.items()
+    }
+    line = curves[curves["pipeline"] == "codesign"]
+    assert list(line["robot_episodes"]) == [20, 40, 80]
+    assert line["capacity_robots"].iloc[0] == 1  # the mean, 92.5 %, is below 95 % at N = 2
+    held = [n for n in (1, 2, 4) if all(high[m] >= 0.95 for m in (1, 2, 4) if m <= n)]
+    assert high[2] >= 0.95 > high[4] and held == [1, 2]
+    assert line["capacity_interval_robots"].iloc[0] == 2
+    ratios = capacity_ratios(curves)
+    assert set(ratios["measure"]) == {"mean", "interval"}
+    assert (ratios["ratio"] == 1.0).all()

@@ -31,6 +31,10 @@ __all__ = [
 ]
 
 
+_MEASURE_WORDS = {"mean": "mean success at the target", "interval": "not below it, Wilson"}
+"""How each capacity measure of ``capacity_ratios`` reads in a note."""
+
+
 def _parse_robots(text: str) -> tuple[int, ...]:
     """``"1..8"``, ``"1,2,4,8"`` or ``"6"`` -> robot counts (capped before a range is made)."""
     from codesign_mb.core.config import ROBOTS_CAP, check_range
@@ -228,8 +232,9 @@ def capacity_command(
         note(f"results written to {files['parquet']}, {files['csv']} and {files['png']}")
         for r in capacity_ratios(curves).to_dict("records"):
             note(
-                f"{r['channel']}, {r['scheduler']}: capacity co-design {r['codesign_capacity']} "
-                f"/ static {r['static_capacity']} robots = {r['ratio']:.3g} ({r['bound']})"
+                f"{r['channel']}, {r['scheduler']} ({_MEASURE_WORDS[r['measure']]}): capacity "
+                f"co-design {r['codesign_capacity']} / static {r['static_capacity']} robots = "
+                f"{r['ratio']:.3g} ({r['bound']})"
             )
     shown = curves if as_json else curves[[c for c in _CURVE_COLUMNS if c in curves]]
     emit(shown, as_json=as_json, title="task success vs robots (fig_wifi)")

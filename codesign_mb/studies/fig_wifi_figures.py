@@ -137,6 +137,9 @@ def _curve(
     robots = f"{cap} robot{'' if cap == 1 else 's'}"
     reach = f">= {robots}" if line["capacity_censored"].iloc[0] else robots if cap else "none"
     label = f"{name} (at {success_target:.0%}: {reach}"
+    if "capacity_interval_robots" in line:  # not significantly below the target
+        more = ">= " if line["capacity_interval_censored"].iloc[0] else ""
+        label += f", not below: {more}{int(line['capacity_interval_robots'].iloc[0])}"
     stopped = line["stopped_at_robots"].iloc[0]
     if stopped == stopped:  # not NaN: the sweep stopped this curve there
         label += f"; < {stop_below:.0%} at {int(stopped)}: no larger N run"

@@ -354,6 +354,10 @@ def fig_wifi_section(study: Study, figures_url: str) -> str:
             cap = int(c["capacity_robots"])
             censored = c["capacity_censored"] if "capacity_censored" in c else cap == max(ns)
             capacity[key] = f">= {cap}" if censored else str(cap)
+            if "capacity_interval_robots" in c:  # not significantly below the target
+                cap = int(c["capacity_interval_robots"])
+                more = ">= " if c.get("capacity_interval_censored") else ""
+                capacity[key] += f" ({more}{cap} not below it)"
             at = c.get("stopped_at_robots")
             if _finite(at):  # the sweep stopped this curve there
                 lines[key].update({n: "not run" for n in ns if n > at and n not in lines[key]})
@@ -377,7 +381,8 @@ def fig_wifi_section(study: Study, figures_url: str) -> str:
             parts.append(
                 "Co-design over static capacity: "
                 + "; ".join(
-                    f"{r['scheduler']} {r['codesign_capacity']} / {r['static_capacity']} = "
+                    f"{r['scheduler']}{_MEASURES.get(str(r.get('measure', 'mean')), '')} "
+                    f"{r['codesign_capacity']} / {r['static_capacity']} = "
                     f"{_g(round(float(r['ratio']), 2))} ({r['bound']})"
                     for r in ratios
                 )
@@ -385,6 +390,10 @@ def fig_wifi_section(study: Study, figures_url: str) -> str:
             )
     parts.append(_figures(study, figures_url))
     return _paragraphs(*parts)
+
+
+_MEASURES = {"mean": "", "interval": " (not significantly below the target, Wilson)"}
+"""How each capacity measure of a ratio is named in README (the mean's: plainly)."""
 
 
 def _wifi_method(study: Study) -> str:
