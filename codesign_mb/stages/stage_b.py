@@ -55,6 +55,7 @@ from codesign_mb.stages.paths import portable_paths
 from codesign_mb.stages.training import (
     WIDTH_CAP,
     Progress,
+    git_commit,
     no_progress,
     require_at_least,
     write_json,
@@ -217,6 +218,7 @@ def train_stage_b(
         "held_out_episodes": len(val),
         "layout": _layouts(probe),
         "package_version": package_version(),
+        "git_commit": git_commit(),
         "config": to_mapping(config),
     }
     write_json(out_dir / "training.json", portable_paths(meta, out_dir))

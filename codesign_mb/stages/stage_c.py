@@ -125,14 +125,18 @@ class StageCConfig:
 def make_qos_env(
     config: StageCConfig, *, estimator_spec: ComponentSpec | None = None
 ) -> QosAdaptationEnv:
-    """The :class:`QosAdaptationEnv` of ``config`` with freshly built components."""
-    probe = make_plant(config.plant)
-    estimator = build("estimator", estimator_spec or config.estimator, probe)
-    controller = build("controller", config.controller, probe)
-    features = make_features(config.features, probe, config.feature_options)
-    probe.close()
+    """The :class:`QosAdaptationEnv` of ``config`` with freshly built components.
+
+    The components are built on the plant the env steps: a controller may read that plant's
+    own sensors (the MPC reads the arm's joint positions), so one built on another instance
+    would steer by a robot that never moves.
+    """
+    plant = make_plant(config.plant)
+    estimator = build("estimator", estimator_spec or config.estimator, plant)
+    controller = build("controller", config.controller, plant)
+    features = make_features(config.features, plant, config.feature_options)
     return QosAdaptationEnv(
-        lambda: make_plant(config.plant),
+        lambda: plant,
         estimator,
         controller,
         config=config.env,

@@ -48,6 +48,7 @@ from codesign_mb.stages.paths import portable_paths
 from codesign_mb.stages.stage_c import StageCConfig, train_stage_c
 from codesign_mb.stages.training import (
     Progress,
+    git_commit,
     no_progress,
     require_at_least,
     seeded_torch,
@@ -183,6 +184,7 @@ def train_stage_d(
         "env_steps": env_steps + int(qos_result["env_steps"]),
         "wall_time_s": round(time.perf_counter() - started, 1),
         "package_version": package_version(),
+        "git_commit": git_commit(),
         "config": to_mapping(config),
     }
     write_json(out_dir / "training.json", portable_paths(meta, out_dir))

@@ -143,7 +143,7 @@ scenarios ``constant-0.2`` and ``constant-0.6`` (both belt speeds of the paper) 
 
 # -- rows -------------------------------------------------------------------------------------
 _SAC = ComponentSpec("sac", "checkpoints/stage_a/model.zip")
-_MLP = ComponentSpec("mlp", "checkpoints/stage_d/mlp.pt")
+_MLP = ComponentSpec("mlp", "checkpoints/stage_d_model_free/mlp.pt")
 _MPC = ComponentSpec("mpc")
 _PREDICTOR = ComponentSpec("predictor")
 _STATIC = ComponentSpec("static", options={"reliability": 1.0, "latency_steps": 1})
@@ -222,16 +222,16 @@ MODEL_FREE_CODESIGN_ROW = "MLP estimator, model-free dynamic QoS (co-design)"
 (``checkpoints/stage_d_model_free``, trained with ``--qos-features held_history``)."""
 
 _HYBRID_QOS = ComponentSpec("learned", "checkpoints/stage_d/qos")
+_HYBRID_MLP = ComponentSpec("mlp", "checkpoints/stage_d/mlp.pt")
 _MODEL_FREE_QOS = ComponentSpec("learned", "checkpoints/stage_d_model_free/qos")
-_MODEL_FREE_MLP = ComponentSpec("mlp", "checkpoints/stage_d_model_free/mlp.pt")
 
 
 def model_free_rows() -> tuple[TableRow, ...]:
     """The paper's Table I rows (latency fixed at one step), and the hybrid co-design.
 
-    The paper's figures go with the model-free co-design row (its checkpoint is not shipped
-    yet: tables report it as missing until it is trained); the shipped stage-D policy reads
-    the ``predictor_std`` features, so its row is labelled hybrid.
+    The learned rows read stage D's model-free estimator (``stage_d_model_free/mlp.pt``); the
+    paper's figures go with the model-free co-design row; the hybrid co-design (stage D with
+    the ``predictor_std`` features, ``stage_d/``) is its own row with its own stage-D MLP.
     """
     return (
         TableRow("MLP estimator, static QoS", _SAC, _MLP, _STATIC, 1.00, 1.00),
@@ -243,8 +243,8 @@ def model_free_rows() -> tuple[TableRow, ...]:
             0.78,
             0.52,
         ),
-        TableRow(MODEL_FREE_CODESIGN_ROW, _SAC, _MODEL_FREE_MLP, _MODEL_FREE_QOS, 0.98, 0.13),
-        TableRow(HYBRID_CODESIGN_ROW, _SAC, _MLP, _HYBRID_QOS),
+        TableRow(MODEL_FREE_CODESIGN_ROW, _SAC, _MLP, _MODEL_FREE_QOS, 0.98, 0.13),
+        TableRow(HYBRID_CODESIGN_ROW, _SAC, _HYBRID_MLP, _HYBRID_QOS),
     )
 
 
@@ -268,18 +268,17 @@ def all_rows() -> tuple[TableRow, ...]:
     predictor and MPC + MLP, static and rule QoS; a SAC QoS policy is trained for one
     controller and estimator), and the no-estimator rows (the paper's "no estimator, dynamic
     QoS" and its model-based counterpart). The learned stack uses stage D's estimator and
-    QoS policy (the paper's final synthesis): model-free (``held_history`` features) and hybrid
-    (the shipped one, ``predictor_std`` features); the model-based SAC QoS is stage C on MPC +
-    predictor (``checkpoints/stage_c_mpc``, features ``predictor_std``).
+    QoS policy (the paper's final synthesis): model-free (``held_history`` features, the
+    estimator of every other learned row) and hybrid (``predictor_std`` features, with its
+    own stage-D estimator); the model-based SAC QoS is stage C on MPC + predictor
+    (``checkpoints/stage_c_mpc``, features ``predictor_std``).
     """
     rule = _rule()
     return (
         TableRow("SAC + MLP, static QoS", _SAC, _MLP, _STATIC, 1.00, 1.00),
         TableRow("SAC + MLP, rule QoS", _SAC, _MLP, rule),
-        TableRow(
-            "SAC + MLP, model-free SAC QoS", _SAC, _MODEL_FREE_MLP, _MODEL_FREE_QOS, 0.98, 0.13
-        ),
-        TableRow("SAC + MLP, hybrid SAC QoS", _SAC, _MLP, _HYBRID_QOS),
+        TableRow("SAC + MLP, model-free SAC QoS", _SAC, _MLP, _MODEL_FREE_QOS, 0.98, 0.13),
+        TableRow("SAC + MLP, hybrid SAC QoS", _SAC, _HYBRID_MLP, _HYBRID_QOS),
         TableRow(
             "SAC, no estimator, SAC QoS",
             _SAC,
