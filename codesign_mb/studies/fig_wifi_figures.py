@@ -142,7 +142,7 @@ def _curve(
         label += f", not below: {more}{int(line['capacity_interval_robots'].iloc[0])}"
     stopped = line["stopped_at_robots"].iloc[0]
     if stopped == stopped:  # not NaN: the sweep stopped this curve there
-        label += f"; < {stop_below:.0%} at {int(stopped)}: no larger N run"
+        label += f";\n< {stop_below:.0%} at {int(stopped)}: no larger N run"
     label += ")"
     x = line["robots"].to_numpy() + dodge
     axes[0].plot(x, line["success_rate"], label=label, **style)
