@@ -63,7 +63,7 @@ def test_pipelines_are_table_rows() -> None:
     static = conveyor.pipeline_row("model-free-static")
     assert static.qos.options["reliability"] == 1.0
     assert conveyor.pipeline_row("model-free-codesign").qos.checkpoint == (
-        "checkpoints/stage_d_model_free/qos"
+        "checkpoints/stage_d_model_free_lstm/qos"
     )
     assert conveyor.pipeline_row("hybrid-codesign").qos.checkpoint == "checkpoints/stage_d/qos"
 

@@ -94,7 +94,7 @@ def test_reference_stacks_of_the_pipelines() -> None:
         return [(c.kind, e.kind) for c, e in reference_stacks(PIPELINES[pipeline]())]
 
     assert stacks("model-based") == [("mpc", "predictor"), ("mpc", "belt_imm")]
-    assert stacks("model-free") == [("sac", "mlp")]
+    assert stacks("model-free") == [("sac", "lstm"), ("sac", "mlp")]  # model-free, hybrid
     assert stacks("all") == [("sac", "mlp"), ("mpc", "predictor")]
     refs = fixed_references(PIPELINES["model-based"]())
     fixed = [

@@ -92,8 +92,8 @@ PIPELINE_KINDS: dict[str, tuple[str, str, str]] = {
     "model-based-rule": ("mpc", "predictor", "rule"),
     "model-based-learned-qos": ("mpc", "predictor", "learned"),
     "model-based-no-estimator": ("mpc", "none", "rule"),
-    "model-free-static": ("sac", "mlp", "static"),
-    "model-free-codesign": ("sac", "mlp", "learned"),
+    "model-free-static": ("sac", "lstm", "static"),
+    "model-free-codesign": ("sac", "lstm", "learned"),
     "hybrid-codesign": ("sac", "mlp", "learned"),
     "sac-mlp-rule": ("sac", "mlp", "rule"),
     "model-free-no-estimator": ("sac", "none", "learned"),
@@ -106,8 +106,8 @@ PIPELINE_KINDS: dict[str, tuple[str, str, str]] = {
 The covariance rule's threshold is the one tuned for the sweep's conveyor scenario at its own
 belt speed (:func:`~codesign_mb.studies.table_rows.row_for_plant`, the default when it has
 none), held fixed across the grid: a grid point is the same design on another plant.
-``model-free-codesign`` is SAC (stage A) + MLP + the learned QoS policy (stage D) that reads
-``(y, zeta)`` and ``held_history``; ``hybrid-codesign`` the shipped one, whose QoS policy
+``model-free-codesign`` is SAC (stage A) + LSTM + the learned QoS policy (stage D) that reads
+``(y, zeta)`` and ``held_history``; ``hybrid-codesign`` the MLP one whose QoS policy
 reads ``predictor_std`` (:data:`PIPELINE_ROW_NAMES`)."""
 
 PIPELINE_ROW_NAMES: dict[str, str] = {
