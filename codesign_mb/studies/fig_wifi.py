@@ -329,12 +329,13 @@ def _held(robots: pd.Series, values: pd.Series, target: float) -> int:
     return capacity
 
 
-CAPACITY_MEASURES: dict[str, str] = {
-    "mean": "capacity_robots",
-    "interval": "capacity_interval_robots",
+CAPACITY_MEASURES: dict[str, tuple[str, str]] = {
+    "mean": ("capacity_robots", "capacity_censored"),
+    "interval": ("capacity_interval_robots", "capacity_interval_censored"),
 }
-"""How a capacity is read (:func:`capacity_table`): the mean success reaches the target, or
-it is not significantly below it (Wilson upper bound)."""
+"""How a capacity is read (:func:`capacity_table`'s columns: the capacity, whether it is
+censored): the mean success reaches the target, or it is not significantly below it (Wilson
+upper bound)."""
 
 
 def capacity_ratios(
@@ -357,7 +358,7 @@ def capacity_ratios(
     rows = []
     cells = zip(curves["channel"], curves["scheduler"], strict=True)
     for (channel, scheduler), measure in itertools.product(dict.fromkeys(cells), measures):
-        column = CAPACITY_MEASURES[measure]
+        column, censored = CAPACITY_MEASURES[measure]
         if column not in per_curve:
             continue
         try:
@@ -366,7 +367,6 @@ def capacity_ratios(
         except KeyError:
             continue
         c_cap, s_cap = int(c[column]), int(s[column])
-        censored = column.replace("_robots", "_censored")
         c_open = bool(c.get(censored, False))
         s_open = bool(s.get(censored, False))
         ratio = c_cap / s_cap if s_cap else (math.inf if c_cap else math.nan)
