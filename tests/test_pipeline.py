@@ -18,6 +18,7 @@ from gymnasium.utils.env_checker import check_env
 from codesign_mb.adaptation.learned import ElapsedTimeFeature, LearnedQosPolicy
 from codesign_mb.control.sac import SacController
 from codesign_mb.control.scripted import ToyPickController
+from codesign_mb.core.config import from_mapping
 from codesign_mb.core.registry import (
     ComponentSpec,
     PlantSpec,
@@ -467,8 +468,6 @@ def test_toy_plant_checker_and_scripted_pick() -> None:
 
 
 def test_configs_reject_bad_values() -> None:
-    from codesign_mb.core.config import from_mapping
-
     with pytest.raises(ValueError, match=r"plant\.name"):
         PlantSpec("nope")
     with pytest.raises(ValueError, match="unknown key"):
@@ -550,3 +549,18 @@ def test_the_qos_env_builds_its_controller_on_the_plant_it_steps() -> None:
             done = terminated or truncated
         successes += bool(info["qos_episode"]["success"])
     assert successes >= 1
+
+
+@pytest.mark.parametrize(("given", "expected"), [(0.01, 0.01), ("0.02", 0.02)])
+def test_a_fixed_entropy_coefficient_is_given_as_a_number_or_a_string(
+    given: float | str, expected: float
+) -> None:
+    """``--set sac.ent_coef=0.01`` (a number) and ``"0.02"`` both fix SAC's coefficient."""
+    spec = from_mapping(SacSpec, {"ent_coef": given, "net_arch": [8], "learning_starts": 10})
+    env = QosAdaptationEnv(lambda: make_plant(TOY), PassThroughEstimator(), _Idle())
+    model = make_sac(env, spec, seed=0)
+    assert model.ent_coef_optimizer is None  # not learned
+    assert float(model.ent_coef_tensor) == pytest.approx(expected)
+    for bad in (0.0, -1.0, "fast"):
+        with pytest.raises(ValueError, match="ent_coef"):
+            SacSpec(ent_coef=bad)

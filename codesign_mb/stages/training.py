@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import math
 import os
 import time
 from collections.abc import Callable, Iterable, Iterator, Mapping
@@ -102,7 +103,8 @@ def selection_seeds(n: int) -> list[int]:
 class SacSpec:
     """Hyper-parameters of SB3's SAC (names as in :class:`stable_baselines3.SAC`).
 
-    ``ent_coef`` is ``"auto"``, ``"auto_<init>"`` or a number given as a string.
+    ``ent_coef`` is ``"auto"``, ``"auto_<init>"`` (learned, from ``init``) or a fixed
+    positive number (a number or a numeric string).
     """
 
     learning_rate: float = 3e-4
@@ -114,7 +116,7 @@ class SacSpec:
     train_freq: int = 1
     gradient_steps: int = 1
     net_arch: tuple[int, ...] = (256, 256)
-    ent_coef: str = "auto"
+    ent_coef: str | float = "auto"
 
     def __post_init__(self) -> None:
         require_at_least(self, 1, "buffer_size", "batch_size", prefix="sac.", cap=BUFFER_CAP)
@@ -133,13 +135,16 @@ class SacSpec:
         if not self.net_arch or any(int(h) < 1 for h in self.net_arch):
             raise ValueError(f"sac.net_arch must be positive layer widths, got {self.net_arch}")
         ent = self.ent_coef
-        if not ent.startswith("auto"):
-            try:
-                float(ent)
-            except ValueError:
-                raise ValueError(
-                    f"sac.ent_coef must be 'auto', 'auto_<x>' or a number, got {ent!r}"
-                ) from None
+        if isinstance(ent, str) and ent.startswith("auto"):
+            return
+        try:
+            fixed = float(ent)
+        except (TypeError, ValueError):
+            fixed = math.nan
+        if not (math.isfinite(fixed) and fixed > 0):
+            raise ValueError(
+                f"sac.ent_coef must be 'auto', 'auto_<x>' or a positive number, got {ent!r}"
+            )
 
 
 def make_sac(
@@ -160,7 +165,8 @@ def make_sac(
     from stable_baselines3 import SAC
 
     torch.set_num_threads(1)
-    ent = spec.ent_coef if spec.ent_coef.startswith("auto") else float(spec.ent_coef)
+    auto = isinstance(spec.ent_coef, str) and spec.ent_coef.startswith("auto")
+    ent = spec.ent_coef if auto else float(spec.ent_coef)
     return SAC(
         policy,
         env,
