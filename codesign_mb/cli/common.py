@@ -68,6 +68,7 @@ __all__ = [
     "ScenarioOption",
     "SeedOption",
     "cli_errors",
+    "comma_list",
     "emit",
     "explicit",
     "load_config",
@@ -193,6 +194,18 @@ def _one_line(exc: BaseException) -> str:
     else:
         message = str(exc) or type(exc).__name__
     return " ".join(message.split())
+
+
+def comma_list(
+    text: str, name: str, *, item: Callable[[str], Any] = str, example: str = "a,b"
+) -> tuple[Any, ...]:
+    """``"0, 1,2"`` -> ``(item("0"), item("1"), item("2"))``: a comma-separated option's
+    values, blanks dropped; a value ``item`` rejects is reported as ``name must look like
+    example``."""
+    try:
+        return tuple(item(x.strip()) for x in text.split(",") if x.strip())
+    except ValueError:
+        raise ValueError(f"{name} must look like {example}, got {text!r}") from None
 
 
 def note(message: str) -> None:

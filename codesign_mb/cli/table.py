@@ -53,6 +53,7 @@ from codesign_mb.cli.common import (
     JsonOption,
     OutOption,
     cli_errors,
+    comma_list,
     emit,
     explicit,
     load_config,
@@ -189,12 +190,7 @@ def table_command(
 
 def _seed_list(text: str | None) -> tuple[int, ...] | None:
     """``"0,1,2"`` -> ``(0, 1, 2)``; ``None`` stays ``None`` (``--seeds`` not given)."""
-    if text is None:
-        return None
-    try:
-        return tuple(int(x) for x in text.split(",") if x.strip())
-    except ValueError:
-        raise ValueError(f"seeds must look like 0,1,2, got {text!r}") from None
+    return None if text is None else comma_list(text, "seeds", item=int, example="0,1,2")
 
 
 @contextlib.contextmanager

@@ -15,6 +15,7 @@ from codesign_mb.cli.common import (
     OutOption,
     SeedOption,
     cli_errors,
+    comma_list,
     emit,
     explicit,
     load_config,
@@ -47,7 +48,7 @@ def _parse_robots(text: str) -> tuple[int, ...]:
                 raise ValueError
             check_range("robots", hi, cap=ROBOTS_CAP)
             return tuple(range(lo, hi + 1))
-        return tuple(int(x) for x in text.split(",") if x.strip())
+        return comma_list(text, "robots", item=int, example="1..8 or 1,2,4")
     except ValueError as exc:
         if str(exc).startswith("robots"):
             raise
@@ -214,7 +215,7 @@ def capacity_command(
     )
     for key in ("channels", "schedulers"):
         if key in overrides:
-            overrides[key] = [s.strip() for s in str(overrides[key]).split(",") if s.strip()]
+            overrides[key] = list(comma_list(str(overrides[key]), key))
     if "robots" in overrides:
         overrides["robots"] = list(_parse_robots(str(overrides["robots"])))
     cfg = load_config(CapacityConfig, config, overrides, section="capacity")
@@ -286,16 +287,16 @@ def crosscheck_command(
     from codesign_mb.core.results import atomic_write
     from codesign_mb.wifi.crosscheck import CrosscheckConfig, assumptions, crosscheck
 
-    access = () if ns3.strip() in ("", "none") else tuple(a.strip() for a in ns3.split(","))
+    access = () if ns3.strip() in ("", "none") else comma_list(ns3, "ns3", example="su,ofdma")
     if access:
         from codesign_mb.wifi.ns3_driver import ns3_available
 
         if not ns3_available():
             raise ValueError("ns-3 is not installed: pip install 'codesign-mb[ns3]', or --ns3 none")
     cfg = CrosscheckConfig(
-        mcs=tuple(int(m) for m in mcs.split(",")),
-        captures=tuple(c.strip() for c in captures.split(",")),
-        schedulers=tuple(s.strip() for s in schedulers.split(",")),
+        mcs=comma_list(mcs, "mcs", item=int, example="0,3,7"),
+        captures=comma_list(captures, "captures", example="staggered,synchronised"),
+        schedulers=comma_list(schedulers, "schedulers", example="greedy,convex"),
         ns3_access=access,
         max_stations=max_stations,
         periods=periods,
