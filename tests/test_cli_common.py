@@ -8,6 +8,8 @@ from pathlib import Path
 
 import pytest
 import typer
+from hypothesis import given
+from hypothesis import strategies as st
 from typer.testing import CliRunner
 
 from codesign_mb.cli.common import (
@@ -15,6 +17,7 @@ from codesign_mb.cli.common import (
     JsonOption,
     SeedOption,
     cli_errors,
+    comma_list,
     emit,
     explicit,
     load_config,
@@ -190,3 +193,15 @@ def test_emit_table_and_json(capsys: pytest.CaptureFixture[str]) -> None:
 def test_track_is_plain_iteration_without_tty() -> None:
     assert list(track(iter([1, 2, 3]), total=3, description="x")) == [1, 2, 3]
     assert list(track(range(2), disable=True)) == [0, 1]
+
+
+@given(st.lists(st.integers(-(10**6), 10**6), max_size=8), st.sampled_from([",", ", ", " ,"]))
+def test_comma_list_reads_back_what_was_joined(values: list[int], sep: str) -> None:
+    """Any integers joined by commas (with blanks around them) parse back to themselves."""
+    assert comma_list(sep.join(map(str, values)), "seeds", item=int) == tuple(values)
+
+
+def test_comma_list_names_the_option_and_its_form_on_a_bad_value() -> None:
+    with pytest.raises(ValueError, match=r"seeds must look like 0,1,2, got '0,x'"):
+        comma_list("0,x", "seeds", item=int, example="0,1,2")
+    assert comma_list(" su , ofdma,", "ns3") == ("su", "ofdma")
