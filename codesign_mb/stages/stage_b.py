@@ -34,9 +34,8 @@ from pathlib import Path
 from typing import Any
 
 from codesign_mb.control.base import Controller
-from codesign_mb.core.config import EPISODES_CAP, check_range, to_mapping
+from codesign_mb.core.config import EPISODES_CAP, check_range
 from codesign_mb.core.registry import ComponentSpec, PlantSpec, build, make_plant
-from codesign_mb.core.results import package_version
 from codesign_mb.estimation.base import Estimator
 from codesign_mb.estimation.learned import LearnedEstimator, load_estimator
 from codesign_mb.stages.episodes import (
@@ -51,14 +50,14 @@ from codesign_mb.stages.episodes import (
     velocity_slice,
 )
 from codesign_mb.stages.fitting import EstimatorTraining, fit_estimator, new_estimator
-from codesign_mb.stages.paths import portable_paths
 from codesign_mb.stages.training import (
     WIDTH_CAP,
     Progress,
-    git_commit,
     no_progress,
     require_at_least,
+    training_record,
     write_json,
+    write_training_record,
 )
 
 __all__ = ["StageBConfig", "train_stage_b"]
@@ -206,23 +205,20 @@ def train_stage_b(
         estimator.save(out_dir / f"{kind}.pt")
         results[kind] = estimator_mse(estimator, val, **where)
     results.update(_compare(config, probe, val, where))
-    meta = {
-        "stage": "b",
-        "command": command,
-        "seed": config.seed,
-        "env_steps": int(sum(collect.steps.values())),
-        "env_steps_by_dataset": collect.steps,
-        "collection_wall_time_s": round(collect.wall_time_s, 1),
-        "wall_time_s": round(time.perf_counter() - started, 1),
-        "held_out_mse": results,
-        "held_out_episodes": len(val),
-        "layout": _layouts(probe),
-        "package_version": package_version(),
-        "git_commit": git_commit(),
-        "config": to_mapping(config),
-    }
-    write_json(out_dir / "training.json", portable_paths(meta, out_dir))
-    write_json(out_dir / "curve.json", curves)
+    meta = training_record(
+        stage="b",
+        command=command,
+        seed=config.seed,
+        env_steps=sum(collect.steps.values()),
+        wall_time_s=time.perf_counter() - started,
+        config=config,
+        env_steps_by_dataset=collect.steps,
+        collection_wall_time_s=round(collect.wall_time_s, 1),
+        held_out_mse=results,
+        held_out_episodes=len(val),
+        layout=_layouts(probe),
+    )
+    write_training_record(out_dir, meta, curves)
     probe.close()
     return {"env_steps": meta["env_steps"], "wall_time_s": meta["wall_time_s"], "mse": results}
 

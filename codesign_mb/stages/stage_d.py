@@ -24,7 +24,7 @@ from typing import Any
 
 from codesign_mb.adaptation.learned import LearnedQosPolicy
 from codesign_mb.control.base import Controller
-from codesign_mb.core.config import EPISODES_CAP, to_mapping
+from codesign_mb.core.config import EPISODES_CAP
 from codesign_mb.core.registry import (
     ComponentSpec,
     PlantSpec,
@@ -32,7 +32,6 @@ from codesign_mb.core.registry import (
     make_plant,
     resolve_checkpoint,
 )
-from codesign_mb.core.results import package_version
 from codesign_mb.estimation.learned import LearnedEstimator, load_estimator
 from codesign_mb.stages.episodes import (
     DelayDistribution,
@@ -44,15 +43,14 @@ from codesign_mb.stages.episodes import (
     position_slice,
 )
 from codesign_mb.stages.fitting import EstimatorTraining, fit_estimator
-from codesign_mb.stages.paths import portable_paths
 from codesign_mb.stages.stage_c import StageCConfig, train_stage_c
 from codesign_mb.stages.training import (
     Progress,
-    git_commit,
     no_progress,
     require_at_least,
     seeded_torch,
-    write_json,
+    training_record,
+    write_training_record,
 )
 
 __all__ = ["StageDConfig", "train_stage_d"]
@@ -169,26 +167,23 @@ def train_stage_d(
         stage="d",
     )
     env_steps = int(sum(fit.steps.values()))
-    meta = {
-        "stage": "d",
-        "command": command,
-        "seed": config.seed,
-        "estimator": {
+    meta = training_record(
+        stage="d",
+        command=command,
+        seed=config.seed,
+        env_steps=env_steps + int(qos_result["env_steps"]),
+        wall_time_s=time.perf_counter() - started,
+        config=config,
+        estimator={
             "env_steps": env_steps,
             "env_steps_by_dataset": fit.steps,
             "collection_wall_time_s": round(fit.collection_wall_time_s, 1),
             "wall_time_s": round(estimator_s, 1),
             "held_out_mse_under_learned_qos": {"before": fit.before, "after": fit.after},
         },
-        "qos": qos_result,
-        "env_steps": env_steps + int(qos_result["env_steps"]),
-        "wall_time_s": round(time.perf_counter() - started, 1),
-        "package_version": package_version(),
-        "git_commit": git_commit(),
-        "config": to_mapping(config),
-    }
-    write_json(out_dir / "training.json", portable_paths(meta, out_dir))
-    write_json(out_dir / "curve.json", {"estimator": fit.curve})
+        qos=qos_result,
+    )
+    write_training_record(out_dir, meta, {"estimator": fit.curve})
     probe.close()
     return {
         "env_steps": meta["env_steps"],

@@ -50,8 +50,10 @@ __all__ = [
     "selection_seeds",
     "stage_seeds",
     "train_sac_in_chunks",
+    "training_record",
     "write_json",
     "write_output",
+    "write_training_record",
 ]
 
 Progress = Callable[..., Iterable[Any]]
@@ -331,6 +333,39 @@ def _score(
     return keep_best(point)
 
 
+def training_record(
+    *,
+    stage: str,
+    command: str | None,
+    seed: int,
+    env_steps: int,
+    wall_time_s: float,
+    config: Any,
+    **fields: Any,
+) -> dict[str, Any]:
+    """Every stage's ``training.json``: what was run (command, seed, config), how much (env
+    steps, wall time), from which code (package version, git commit), and the stage's own
+    ``fields``."""
+    return {
+        "stage": stage,
+        "command": command,
+        "seed": seed,
+        "env_steps": int(env_steps),
+        "wall_time_s": round(float(wall_time_s), 1),
+        **fields,
+        "package_version": package_version(),
+        "git_commit": git_commit(),
+        "config": to_mapping(config),
+    }
+
+
+def write_training_record(out_dir: Path, meta: Mapping[str, Any], curve: Any) -> None:
+    """``training.json`` (checkpoint paths made portable,
+    :func:`~codesign_mb.stages.paths.portable_paths`) and ``curve.json`` into ``out_dir``."""
+    write_json(out_dir / "training.json", portable_paths(dict(meta), out_dir))
+    write_json(out_dir / "curve.json", curve)
+
+
 def write_output(
     out_dir: str | Path,
     *,
@@ -352,21 +387,18 @@ def write_output(
     out_dir.mkdir(parents=True, exist_ok=True)
     if model is not None:
         _save_model(model, out_dir / "model.zip")
-    meta = {
-        "stage": state.stage,
-        "command": command,
-        "seed": seed,
-        "env_steps": state.steps_done,
-        "wall_time_s": round(state.wall_time_s, 1),
-        "final_evaluation": dict(final or {}),
-        "notes": notes,
-        "package_version": package_version(),
-        "git_commit": git_commit(),
-        "config": to_mapping(config),
+    meta = training_record(
+        stage=state.stage,
+        command=command,
+        seed=seed,
+        env_steps=state.steps_done,
+        wall_time_s=state.wall_time_s,
+        config=config,
+        final_evaluation=dict(final or {}),
+        notes=notes,
         **state.extra,
-    }
-    write_json(out_dir / "training.json", portable_paths(meta, out_dir))
-    write_json(out_dir / "curve.json", state.curve)
+    )
+    write_training_record(out_dir, meta, state.curve)
     return out_dir
 
 
