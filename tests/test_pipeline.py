@@ -8,6 +8,7 @@ MLP is C's estimator, D continues both. The conveyor runs are the shipped checkp
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
 import gymnasium as gym
@@ -42,7 +43,7 @@ from codesign_mb.stages.qos_env import QosAdaptationEnv, QosEnvConfig
 from codesign_mb.stages.stage_a import StageAConfig, train_stage_a
 from codesign_mb.stages.stage_b import StageBConfig, train_stage_b
 from codesign_mb.stages.stage_c import StageCConfig, train_stage_c
-from codesign_mb.stages.stage_d import StageDConfig, train_stage_d
+from codesign_mb.stages.stage_d import StageDConfig, _stage_c_interface, train_stage_d
 from codesign_mb.stages.training import SacSpec, make_sac
 
 TOY = PlantSpec("toy", {"horizon": 40})
@@ -380,6 +381,25 @@ def test_feasible_score_prefers_the_cheapest_feasible_policy() -> None:
 
 
 # -- stage D ------------------------------------------------------------------------------------
+def test_stage_d_keeps_the_stage_c_policys_action_interface(
+    pipeline: dict[str, Path], tmp_path: Path
+) -> None:
+    """The warm-started policy's reliability floor (an action-scale setting) carries into
+    stage D's re-training; a conflicting explicit value is refused."""
+    policy = tmp_path / "c"
+    shutil.copytree(pipeline["out_c"], policy)
+    meta = json.loads((policy / "qos_policy.json").read_text())
+    meta["interface"]["min_reliability"] = 0.05
+    (policy / "qos_policy.json").write_text(json.dumps(meta))
+    estimator = ComponentSpec("mlp", "unused.pt")
+    interface = _stage_c_interface(StageDConfig(estimator=estimator), policy)
+    assert interface["min_reliability"] == 0.05
+    assert interface["latency_steps"] == meta["interface"]["latency_steps"]
+    clash = StageCConfig(env=QosEnvConfig(min_reliability=0.2))
+    with pytest.raises(ValueError, match=r"qos.env.min_reliability=0.2 .* trained with 0.05"):
+        _stage_c_interface(StageDConfig(estimator=estimator, qos=clash), policy)
+
+
 def test_stage_d_continues_estimator_and_qos(pipeline: dict[str, Path]) -> None:
     meta = json.loads((pipeline["out_d"] / "training.json").read_text())
     assert meta["qos"]["env_steps"] == 100

@@ -43,6 +43,7 @@ from codesign_mb.stages.episodes import (
     position_slice,
 )
 from codesign_mb.stages.fitting import EstimatorTraining, fit_estimator
+from codesign_mb.stages.qos_env import QosEnvConfig
 from codesign_mb.stages.stage_c import StageCConfig, train_stage_c
 from codesign_mb.stages.training import (
     Progress,
@@ -81,8 +82,9 @@ class StageDConfig:
         Optimiser settings of the continued fit.
     qos:
         Stage-C settings of the re-training; its ``plant``, ``controller``, ``estimator``,
-        ``warm_start`` and ``features`` are set by this stage (the features are the stage-C
-        policy's; the multiplier starts at its final value, ``warm_start_lambda``).
+        ``warm_start`` and ``features`` are set by this stage (the features, and the env's
+        latency and reliability-range settings, are the stage-C policy's; the multiplier
+        starts at its final value, ``warm_start_lambda``).
     seed:
         Root seed.
     """
@@ -142,6 +144,7 @@ def train_stage_d(
     probe = make_plant(config.plant)
     qos_dir = resolve_checkpoint(config.qos_policy)
     saved = _stage_c_features(config, qos_dir)
+    interface = _stage_c_interface(config, qos_dir)
     # 1. the estimator under the learned QoS policy's deliveries
     fit = _continue_estimator(
         config, probe, qos_dir, out_dir=out_dir, work_dir=work_dir, resume=resume, progress=progress
@@ -153,6 +156,7 @@ def train_stage_d(
         plant=config.plant,
         controller=config.controller,
         estimator=ComponentSpec(config.estimator.kind, str(fit.path)),
+        env=dataclasses.replace(config.qos.env, **interface),
         warm_start=str(qos_dir),
         features=saved.get("kind"),
         feature_options=dict(saved.get("options") or {}),
@@ -203,6 +207,31 @@ def _stage_c_features(config: StageDConfig, qos_dir: Path) -> dict[str, Any]:
             f"trained with {saved.get('kind')!r}"
         )
     return saved
+
+
+_INTERFACE_FIELDS = ("latency_steps", "learn_latency", "max_latency_steps", "min_reliability",
+                     "age_scale")  # fmt: skip
+"""The QoS env settings that define the policy's actions and observations."""
+
+
+def _stage_c_interface(config: StageDConfig, qos_dir: Path) -> dict[str, Any]:
+    """The stage-C policy's action/observation settings (the warm start fixes them, as its
+    features): a ``qos.env`` value set to something else than both the default and the
+    policy's is an error, never silently replaced."""
+    saved = LearnedQosPolicy.read_meta(qos_dir).get("interface") or {}
+    default = QosEnvConfig()
+    out: dict[str, Any] = {}
+    for name in _INTERFACE_FIELDS:
+        if name not in saved:
+            continue
+        given, theirs = getattr(config.qos.env, name), saved[name]
+        if given != theirs and given != getattr(default, name):
+            raise ValueError(
+                f"qos.env.{name}={given!r} but the stage-C policy {qos_dir} was trained with "
+                f"{theirs!r}"
+            )
+        out[name] = type(getattr(default, name))(theirs)
+    return out
 
 
 @dataclass
