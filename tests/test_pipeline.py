@@ -584,3 +584,24 @@ def test_a_fixed_entropy_coefficient_is_given_as_a_number_or_a_string(
     for bad in (0.0, -1.0, "fast"):
         with pytest.raises(ValueError, match="ent_coef"):
             SacSpec(ent_coef=bad)
+
+
+def test_stage_b_and_d_collection_builds_the_controller_on_the_plant_it_steps() -> None:
+    """``collect_episodes`` builds a controller spec on its own plant: the arm-aware MPC built
+    on another instance (as stages B and D did) reads joints that never move and fails."""
+    from codesign_mb.adaptation.base import StaticQos
+    from codesign_mb.core.registry import ComponentSpec, PlantSpec, build
+    from codesign_mb.plants.scenarios import scenario_options
+
+    plant = PlantSpec("conveyor", scenario_options("realistic"))
+    probe = make_plant(plant)
+    behaviour = build("estimator", ComponentSpec("belt_imm"), probe)
+    link = StaticQos(1.0, 1)
+    data = collect_episodes(
+        plant, ComponentSpec("mpc"), link, episodes=2, seed=0, behaviour=behaviour
+    )
+    assert any(data.success)  # the stack's static row: 98 % on realistic
+    stale = build("controller", ComponentSpec("mpc"), probe)  # built on the probe, not stepped
+    data = collect_episodes(plant, stale, link, episodes=2, seed=0, behaviour=behaviour)
+    assert not any(data.success)
+    probe.close()

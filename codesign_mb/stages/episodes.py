@@ -23,7 +23,7 @@ from numpy.typing import NDArray
 
 from codesign_mb.control.base import Controller
 from codesign_mb.core.config import LATENCY_STEPS_CAP, check_range
-from codesign_mb.core.registry import PlantSpec, make_plant
+from codesign_mb.core.registry import ComponentSpec, PlantSpec, build, make_plant
 from codesign_mb.core.results import atomic_write
 from codesign_mb.estimation.base import Estimator
 from codesign_mb.network.link import BernoulliLink
@@ -216,7 +216,7 @@ class EpisodeRecorder:
 
 def collect_episodes(
     plant: PlantSpec,
-    controller: Controller,
+    controller: ComponentSpec | Controller,
     qos_policy: QosPolicy,
     *,
     episodes: int,
@@ -225,11 +225,15 @@ def collect_episodes(
 ) -> EpisodeData:
     """Roll ``controller`` out through a Bernoulli link with ``qos_policy`` and record it.
 
-    ``behaviour`` is the estimator the controller acts through (``None``: ideal control on
-    the true state, i.e. the ideal trajectories). Episode ``i`` is seeded from
-    ``SeedSequence(seed)`` (:func:`~codesign_mb.stages.training.stage_seeds`).
+    ``controller`` given as a spec is built on the plant the episodes step (a controller that
+    reads its own plant's sensors, as the arm-aware MPC reads the joints, must be); an
+    instance is used as given. ``behaviour`` is the estimator the controller acts through
+    (``None``: ideal control on the true state, i.e. the ideal trajectories). Episode ``i``
+    is seeded from ``SeedSequence(seed)`` (:func:`~codesign_mb.stages.training.stage_seeds`).
     """
     env = LinkObservationWrapper(make_plant(plant), BernoulliLink(), qos_policy)
+    if isinstance(controller, ComponentSpec):
+        controller = build("controller", controller, env)
     recorder = EpisodeRecorder(
         int(np.prod(env.action_space.shape)), velocity=estimates_velocity(env)
     )

@@ -33,7 +33,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from codesign_mb.control.base import Controller
 from codesign_mb.core.config import EPISODES_CAP, check_range
 from codesign_mb.core.registry import ComponentSpec, PlantSpec, build, make_plant
 from codesign_mb.estimation.base import Estimator
@@ -137,7 +136,6 @@ class _Collection:
     """Stage B's datasets, cached in the work folder; counts their steps and wall time."""
 
     config: StageBConfig
-    controller: Controller
     work_dir: Path
     steps: dict[str, int] = field(default_factory=dict)
     wall_time_s: float = 0.0
@@ -153,7 +151,7 @@ class _Collection:
             self.work_dir / f"{name}.npz",
             lambda: collect_episodes(
                 self.config.plant,
-                self.controller,
+                self.config.controller,  # built on the plant it steps
                 self.qos,
                 episodes=episodes,
                 seed=seed,
@@ -184,7 +182,7 @@ def train_stage_b(
     _prepare_work_dir(work_dir, resume)
     started = time.perf_counter()
     probe = make_plant(config.plant)
-    collect = _Collection(config, build("controller", config.controller, probe), work_dir)
+    collect = _Collection(config, work_dir)
     where = {
         "remote": probe.unwrapped.remote_slice,
         "position": position_slice(probe),

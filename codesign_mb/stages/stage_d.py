@@ -23,12 +23,10 @@ from pathlib import Path
 from typing import Any
 
 from codesign_mb.adaptation.learned import LearnedQosPolicy
-from codesign_mb.control.base import Controller
 from codesign_mb.core.config import EPISODES_CAP
 from codesign_mb.core.registry import (
     ComponentSpec,
     PlantSpec,
-    build,
     make_plant,
     resolve_checkpoint,
 )
@@ -247,11 +245,12 @@ class _EstimatorFit:
 
 
 def _collect(
-    config: StageDConfig, controller: Controller, qos_dir: Path, probe: Any, work_dir: Path
+    config: StageDConfig, qos_dir: Path, probe: Any, work_dir: Path
 ) -> tuple[EpisodeData, EpisodeData, dict[str, int]]:
     """Episodes under the learned QoS policy (fit, held out), plus ``mix_episodes`` from ``T``.
 
-    The controller acts on the stage-B estimator (the deployed loop); cached in ``work_dir``.
+    The controller (built on the plant each collection steps) acts on the stage-B estimator
+    (the deployed loop); cached in ``work_dir``.
     Returns the fitting data, the held-out data and the steps per dataset.
     """
     qos_policy = LearnedQosPolicy.from_env(probe, qos_dir, deterministic=not config.sample_qos)
@@ -263,7 +262,7 @@ def _collect(
             with seeded_torch(seed):  # the sampled QoS actions draw from torch's RNG
                 return collect_episodes(
                     config.plant,
-                    controller,
+                    config.controller,
                     qos_policy,
                     episodes=episodes,
                     seed=seed,
@@ -281,7 +280,7 @@ def _collect(
             work_dir / "train_mix.npz",
             lambda: collect_episodes(
                 config.plant,
-                controller,
+                config.controller,
                 RandomQos(config.delays),
                 episodes=config.mix_episodes,
                 seed=config.seed + 50,
@@ -304,12 +303,11 @@ def _continue_estimator(
 ) -> _EstimatorFit:
     """Step 1: continue the stage-B estimator's fit on episodes under the learned QoS."""
     kind = config.estimator.kind
-    controller = build("controller", config.controller, probe)
     remote, position = probe.unwrapped.remote_slice, position_slice(probe)
     estimator_ckpt = work_dir / f"{kind}.pt"
     estimator: LearnedEstimator = load_estimator(resolve_checkpoint(config.estimator.checkpoint))
     started = time.perf_counter()
-    data, val, steps = _collect(config, controller, qos_dir, probe, work_dir)
+    data, val, steps = _collect(config, qos_dir, probe, work_dir)
     collect_s = time.perf_counter() - started
     before = estimator_mse(estimator, val, remote=remote, position=position)
     if resume and estimator_ckpt.is_file():
