@@ -8,7 +8,8 @@ Reproducibility: episode ``i`` gets the seed ``SeedSequence(seed).spawn(trials)[
 component is reset from it at the episode's start (the controller also drops its solver's
 warm start), and episodes run in fresh copies of the components. The table is therefore the
 same whatever the number of worker processes, except the wall-time columns
-(:data:`TIMING_COLUMNS`).
+(:data:`TIMING_COLUMNS`). The rows and their aggregate are
+:mod:`codesign_mb.evaluation.metrics`' (re-exported here).
 
 Episodes run in the one process pool (:mod:`codesign_mb.evaluation.pool`); a script calling
 :func:`evaluate` with ``workers > 1`` needs the usual ``if __name__ == "__main__":`` guard.
@@ -33,7 +34,6 @@ from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
-import numpy as np
 import pandas as pd
 
 from codesign_mb.adaptation.base import StaticQos
@@ -43,14 +43,12 @@ from codesign_mb.core.config import STEPS_CAP, WORKERS_CAP, check_range, from_ma
 from codesign_mb.core.records import RecordStore, digest
 from codesign_mb.core.registry import ComponentSpec, Factory
 from codesign_mb.core.seeds import episode_seeds
-from codesign_mb.core.stats import wilson_interval
 from codesign_mb.evaluation import pool
-from codesign_mb.evaluation.phase_metrics import episode_phase_metrics, summarize_phases
+from codesign_mb.evaluation.metrics import TIMING_COLUMNS, episode_row, rows_to_table, summarize
 from codesign_mb.network.link import BernoulliLink
 from codesign_mb.network.qos import QosRequest
 from codesign_mb.network.wrapper import LinkObservationWrapper
 from codesign_mb.plants.conveyor import ConveyorConfig, ConveyorPickPlace
-from codesign_mb.plants.outcomes import FAILURE_REASONS, failure_reason
 from codesign_mb.plants.scenarios import DEFAULT_SCENARIO, get_scenario
 from codesign_mb.rollout import rollout
 
@@ -66,16 +64,6 @@ __all__ = [
     "run_jobs",
     "summarize",
 ]
-
-TIMING_COLUMNS = (
-    "wall_time_s",
-    "mpc_solve_ms_median",
-    "mpc_solve_ms_p99",
-    "mpc_solve_ms_max",
-    "mpc_solve_cpu_ms_median",
-    "mpc_solve_cpu_ms_p99",
-)
-"""Per-episode columns measuring wall time: they vary from run to run, the rest does not."""
 
 
 def make_env(env_config: Any) -> Any:
@@ -114,61 +102,6 @@ def _build(spec: Any, method: str, env: Any, what: str) -> Any:
     if not hasattr(obj, method):
         raise TypeError(f"{what} factory returned {obj!r}, which has no .{method}()")
     return obj
-
-
-# -- summaries ---------------------------------------------------------------------------------
-def summarize(table: pd.DataFrame, confidence: float = 0.95) -> dict[str, Any]:
-    """Aggregate an :func:`evaluate` table: success rate with its Wilson interval, QoS, age, MPC.
-
-    Solve-time figures are over episodes: the median of the episodes' medians, the median of
-    their 99th percentiles and the overall maximum. With the conveyor's outcome columns:
-    ``mean_time_to_grasp_s`` (over the episodes that grasped) and ``failures_<reason>``, the
-    number of failed episodes per reason of
-    :data:`~codesign_mb.plants.outcomes.FAILURE_REASONS`. With the per-phase columns, the
-    estimation error per phase and the NEES with its band under a consistent filter
-    (``est_error_mm_<phase>``, ``nees_<phase>``, ...: pooled over the steps,
-    :func:`~codesign_mb.evaluation.phase_metrics.summarize_phases`).
-    """
-    if len(table) == 0:
-        raise ValueError("cannot summarise an empty table")
-    n = len(table)
-    k = int(table["success"].sum())
-    low, high = wilson_interval(k, n, confidence)
-    out: dict[str, Any] = {
-        "trials": n,
-        "successes": k,
-        "success_rate": k / n,
-        "success_ci_low": low,
-        "success_ci_high": high,
-        "confidence": confidence,
-    }
-    for column in (
-        "mean_requested_reliability",
-        "delivered_fraction",
-        "mean_age",
-        "mean_qos_cost",
-        "mean_estimation_error",
-        "steps",
-    ):
-        if column in table:
-            out[column] = float(table[column].mean())
-    if "max_age" in table:
-        out["max_age"] = int(table["max_age"].max())
-    if "time_to_grasp_s" in table:
-        out["mean_time_to_grasp_s"] = float(table["time_to_grasp_s"].mean())  # NaN: no grasp
-    if "failure_reason" in table:
-        for reason in FAILURE_REASONS:
-            out[f"failures_{reason}"] = int((table["failure_reason"] == reason).sum())
-    if "mpc_solve_ms_median" in table:
-        out["mpc_solve_ms_median"] = float(table["mpc_solve_ms_median"].median())
-        out["mpc_solve_ms_p99"] = float(table["mpc_solve_ms_p99"].median())
-        out["mpc_solve_ms_max"] = float(table["mpc_solve_ms_max"].max())
-        if "mpc_solve_cpu_ms_median" in table:
-            out["mpc_solve_cpu_ms_median"] = float(table["mpc_solve_cpu_ms_median"].median())
-            out["mpc_solve_cpu_ms_p99"] = float(table["mpc_solve_cpu_ms_p99"].median())
-        out["mpc_failures"] = int(table["mpc_failures"].sum())
-    out.update(summarize_phases(table, confidence))
-    return out
 
 
 # -- episodes --------------------------------------------------------------------------------
@@ -211,43 +144,6 @@ class _Runner:
                 row.update(metrics())
         row["wall_time_s"] = time.perf_counter() - start
         return row
-
-
-def episode_row(steps: pd.DataFrame) -> dict[str, Any]:
-    """One episode's metrics from its :func:`~codesign_mb.rollout.loop.rollout` record."""
-    success = steps["success"].astype(bool) if "success" in steps else pd.Series(False)
-    row: dict[str, Any] = {
-        "success": bool(success.any()),
-        "success_step": int(np.argmax(success.to_numpy())) if success.any() else -1,
-        "steps": len(steps),
-        "return": float(steps["reward"].sum()) if "reward" in steps else math.nan,
-        "mean_requested_reliability": float(steps["qos_reliability"].mean()),
-        "mean_latency_steps": float(steps["qos_latency_steps"].mean()),
-        "mean_qos_cost": float(steps["qos_cost"].mean()),
-        "delivered_fraction": float(steps["delivered"].astype(float).mean()),
-        "mean_age": float(steps["age"].mean()),
-        "max_age": int(steps["age"].max()),
-        "mean_estimation_error": float(steps["estimation_error"].mean()),
-        "max_estimation_error": float(steps["estimation_error"].max()),
-    }
-    if "lifted" in steps:
-        row["lifted"] = bool(steps["lifted"].astype(bool).any())
-    if "gripper_object_distance" in steps:
-        row["min_gripper_object_distance"] = float(steps["gripper_object_distance"].min())
-    if "perceived" in steps:
-        row["perceived_fraction"] = float(steps["perceived"].astype(float).mean())
-    if "off_belt" in steps:  # the conveyor's latched outcome events (plants.outcomes)
-        last = steps.iloc[-1]
-        row["failure_reason"] = failure_reason(
-            row["success"],
-            missed_grasp=bool(last["missed_grasp"]),
-            dropped=bool(last["dropped"]),
-            off_belt=bool(last["off_belt"]),
-        )
-        grasp_s = float(last["time_to_grasp_s"])
-        row["time_to_grasp_s"] = grasp_s if grasp_s >= 0 else math.nan  # -1: never grasped
-    row.update(episode_phase_metrics(steps))
-    return row
 
 
 _RUNNERS: dict[int, _Runner] = {}
@@ -355,11 +251,6 @@ def iter_episodes(
     job = (controller, estimator, qos_policy, env_config, trials, seed)
     for _, row in run_jobs([job], link=link, workers=workers, max_steps=max_steps, store=store):
         yield row
-
-
-def rows_to_table(rows: Sequence[Mapping[str, Any]]) -> pd.DataFrame:
-    """The per-episode table from rows in any order: sorted by ``episode``."""
-    return pd.DataFrame(list(rows)).sort_values("episode", kind="stable").reset_index(drop=True)
 
 
 def evaluate(
