@@ -90,7 +90,7 @@ class StageCConfig:
         evaluation in ``training.json`` is of the shipped policy, on other seeds. The cheapest
         of a dozen iterates that pass on few episodes is overrated: on Table I's model-free
         run the picks of 20 and 50 episodes reached 92 and 90.5 % on 200, the pick of 200
-        (``eval_episodes=200, target_success=0.97``) 97 % on the ``test`` seeds.
+        (``eval_episodes=200, target_success=0.97``), after stage D, 97 % on the ``test`` seeds.
     seed:
         Root seed.
     """
