@@ -392,12 +392,13 @@ def test_stage_d_keeps_the_stage_c_policys_action_interface(
     meta["interface"]["min_reliability"] = 0.05
     (policy / "qos_policy.json").write_text(json.dumps(meta))
     estimator = ComponentSpec("mlp", "unused.pt")
-    interface = _stage_c_interface(StageDConfig(estimator=estimator), policy)
+    meta = LearnedQosPolicy.read_meta(policy)  # as stage D reads it
+    interface = _stage_c_interface(StageDConfig(estimator=estimator), meta, policy)
     assert interface["min_reliability"] == 0.05
     assert interface["latency_steps"] == meta["interface"]["latency_steps"]
     clash = StageCConfig(env=QosEnvConfig(min_reliability=0.2))
     with pytest.raises(ValueError, match=r"qos.env.min_reliability=0.2 .* trained with 0.05"):
-        _stage_c_interface(StageDConfig(estimator=estimator, qos=clash), policy)
+        _stage_c_interface(StageDConfig(estimator=estimator, qos=clash), meta, policy)
 
 
 def test_stage_d_continues_estimator_and_qos(pipeline: dict[str, Path]) -> None:

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -141,8 +142,9 @@ def train_stage_d(
     started = time.perf_counter()
     probe = make_plant(config.plant)
     qos_dir = resolve_checkpoint(config.qos_policy)
-    saved = _stage_c_features(config, qos_dir)
-    interface = _stage_c_interface(config, qos_dir)
+    meta = LearnedQosPolicy.read_meta(qos_dir)
+    saved = _stage_c_features(config, meta, qos_dir)
+    interface = _stage_c_interface(config, meta, qos_dir)
     # 1. the estimator under the learned QoS policy's deliveries
     fit = _continue_estimator(
         config, probe, qos_dir, out_dir=out_dir, work_dir=work_dir, resume=resume, progress=progress
@@ -196,9 +198,12 @@ def train_stage_d(
     }
 
 
-def _stage_c_features(config: StageDConfig, qos_dir: Path) -> dict[str, Any]:
-    """The stage-C policy's features (the warm start fixes the observation); checks ``qos``."""
-    saved = LearnedQosPolicy.read_meta(qos_dir).get("features") or {}
+def _stage_c_features(
+    config: StageDConfig, meta: Mapping[str, Any], qos_dir: Path
+) -> dict[str, Any]:
+    """The stage-C policy's features (``meta``: its ``qos_policy.json``; the warm start fixes
+    the observation); checks ``qos``."""
+    saved = meta.get("features") or {}
     if config.qos.features is not None and config.qos.features != saved.get("kind"):
         raise ValueError(
             f"qos.features={config.qos.features!r} but the stage-C policy {qos_dir} was "
@@ -212,11 +217,13 @@ _INTERFACE_FIELDS = ("latency_steps", "learn_latency", "max_latency_steps", "min
 """The QoS env settings that define the policy's actions and observations."""
 
 
-def _stage_c_interface(config: StageDConfig, qos_dir: Path) -> dict[str, Any]:
-    """The stage-C policy's action/observation settings (the warm start fixes them, as its
-    features): a ``qos.env`` value set to something else than both the default and the
-    policy's is an error, never silently replaced."""
-    saved = LearnedQosPolicy.read_meta(qos_dir).get("interface") or {}
+def _stage_c_interface(
+    config: StageDConfig, meta: Mapping[str, Any], qos_dir: Path
+) -> dict[str, Any]:
+    """The stage-C policy's action/observation settings (``meta``: its ``qos_policy.json``;
+    the warm start fixes them, as its features): a ``qos.env`` value set to something else
+    than both the default and the policy's is an error, never silently replaced."""
+    saved = meta.get("interface") or {}
     default = QosEnvConfig()
     out: dict[str, Any] = {}
     for name in _INTERFACE_FIELDS:
