@@ -137,7 +137,7 @@ class SacSpec:
         if not self.net_arch or any(int(h) < 1 for h in self.net_arch):
             raise ValueError(f"sac.net_arch must be positive layer widths, got {self.net_arch}")
         ent = self.ent_coef
-        if isinstance(ent, str) and ent.startswith("auto"):
+        if self.learns_ent_coef:
             return
         try:
             fixed = float(ent)
@@ -147,6 +147,11 @@ class SacSpec:
             raise ValueError(
                 f"sac.ent_coef must be 'auto', 'auto_<x>' or a positive number, got {ent!r}"
             )
+
+    @property
+    def learns_ent_coef(self) -> bool:
+        """``ent_coef`` is learned (``"auto"``, ``"auto_<init>"``), not fixed."""
+        return isinstance(self.ent_coef, str) and self.ent_coef.startswith("auto")
 
 
 def make_sac(
@@ -167,8 +172,7 @@ def make_sac(
     from stable_baselines3 import SAC
 
     torch.set_num_threads(1)
-    auto = isinstance(spec.ent_coef, str) and spec.ent_coef.startswith("auto")
-    ent = spec.ent_coef if auto else float(spec.ent_coef)
+    ent = spec.ent_coef if spec.learns_ent_coef else float(spec.ent_coef)
     return SAC(
         policy,
         env,
