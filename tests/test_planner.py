@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from codesign_mb.adaptation.planner import QosPlanner
+from codesign_mb.adaptation.planner import REASONS, QosPlanner
 from codesign_mb.estimation.belt_imm import BeltImmPredictor
 from codesign_mb.estimation.belt_model import BeltModel
 from codesign_mb.network.link import BernoulliLink
@@ -144,3 +144,24 @@ def test_a_policy_reading_the_robot_state_gets_the_whole_held_observation() -> N
     assert len(policy.seen) == 4
     for seen, held in zip(policy.seen[1:], outputs[:-1], strict=True):
         np.testing.assert_array_equal(seen, held[:-1])  # the observation without its age
+
+
+def test_episode_metrics_count_each_high_request_under_its_reason() -> None:
+    """The per-reason counts add up to the requests that asked ``high``, each under the
+    reason the planner gave for it, and start from zero each episode."""
+    planner = _planner(grasp_std_m=0.01, far_std_m=0.02)
+    far, obj = [0.5, -0.4, 0.3], [0.5, 0.1, 0.02]
+    for _episode in range(2):
+        planner.reset()
+        expected = dict.fromkeys(REASONS, 0)
+        for t in range(12):
+            age = 1 if t < 4 else t - 2  # packets until t = 3, then none
+            obj = [0.5, 0.1 + 0.3 * DT * t, 0.02]
+            request = planner.request(_held(far, obj), age)
+            assert (request.reliability > 0) == (planner.reason is not None)
+            if planner.reason is not None:
+                expected[planner.reason] += 1
+        counts = planner.episode_metrics()
+        assert counts == {f"qos_asked_{r.replace(' ', '_')}": float(n) for r, n in expected.items()}
+        assert counts["qos_asked_nothing_measured_yet"] == 2.0  # t = 0 and t = 1
+        assert counts["qos_asked_far"] > 0  # the uncertainty outgrows far_std_m without packets

@@ -51,7 +51,14 @@ from scipy.stats import chi2
 from codesign_mb.core.layout import entry_indices, slice_indices
 from codesign_mb.network.qos import QosRequest
 
-__all__ = ["QosPlanner"]
+__all__ = ["REASONS", "QosPlanner"]
+
+REASONS = ("nothing measured yet", "surprise", "far", "at the grasp", "closing", "plan")
+"""Why the planner asks ``high`` (:attr:`QosPlanner.reason`), in the order it tests them."""
+
+
+def _slug(reason: str) -> str:
+    return reason.replace(" ", "_")
 
 
 class QosPlanner:
@@ -159,6 +166,7 @@ class QosPlanner:
         self._lifted = False
         self.reason: str | None = None
         """Why the last request asked ``high`` (``None``: it did not)."""
+        self._asked: dict[str, int] = dict.fromkeys(REASONS, 0)
 
     # -- the policy ------------------------------------------------------------------------
     def request(self, observation: NDArray[np.float64], age: int) -> QosRequest:
@@ -191,7 +199,16 @@ class QosPlanner:
     def _decide(self, reason: str | None) -> QosRequest:
         """The request, ``high`` when there is a reason (kept in :attr:`reason`)."""
         self.reason = reason
-        return self._skip if reason is None else self._send
+        if reason is None:
+            return self._skip
+        self._asked[reason] += 1
+        return self._send
+
+    def episode_metrics(self) -> dict[str, float]:
+        """Requests of the episode by reason (``qos_asked_<reason>``, :data:`REASONS`):
+        which of the planner's triggers the packets were spent on. Counted as asked: a step
+        with no detection to send (the link then carries nothing) counts too."""
+        return {f"qos_asked_{_slug(r)}": float(n) for r, n in self._asked.items()}
 
     def _lifted_now(self, held: NDArray[np.float64]) -> bool:
         z = float(self.replica.state[2])

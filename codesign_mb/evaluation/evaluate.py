@@ -312,7 +312,8 @@ def evaluate(
         controller, estimator and QoS policy (for the MPC:
         ``mpc_solves``, ``mpc_failures``, ``mpc_solve_ms_median``, ``mpc_solve_ms_p99``,
         ``mpc_solve_ms_max`` (wall clock), ``mpc_solve_cpu_ms_median``,
-        ``mpc_solve_cpu_ms_p99`` (CPU)), ``wall_time_s``.
+        ``mpc_solve_cpu_ms_p99`` (CPU); for the QoS planner, ``qos_asked_<reason>``),
+        ``wall_time_s``.
     """
     rows = []
     for row in iter_episodes(
