@@ -250,8 +250,9 @@ def crosscheck_command(
         str, typer.Option("--schedulers", help="Our allocators, comma separated.")
     ] = "greedy,convex",
     ns3: Annotated[
-        str, typer.Option("--ns3", help="ns-3 access schemes: su, ofdma (comma separated) or none.")
-    ] = "su,ofdma",
+        str,
+        typer.Option("--ns3", help="ns-3 set-ups: su, su-rts, ofdma (comma separated) or none."),
+    ] = "su,su-rts,ofdma",
     max_stations: Annotated[
         int, typer.Option("--max-stations", help="Upper end of the capacity search.")
     ] = 64,
@@ -280,14 +281,17 @@ def crosscheck_command(
 
     Same traffic both sides: N stations, 13,500 B up and 32 B down per 40 ms, one fixed MCS,
     no channel errors. ns-3 (optional dependency: pip install 'codesign-mb\\[ns3]') runs its
-    802.11ax model single-user (EDCA) and with its round-robin OFDMA scheduler.
+    802.11ax model single-user (EDCA; su-rts: with RTS/CTS for the camera frames and an AP
+    TXOP) and with its round-robin OFDMA scheduler.
     """
     import json
 
     from codesign_mb.core.results import atomic_write
     from codesign_mb.wifi.crosscheck import CrosscheckConfig, assumptions, crosscheck
 
-    access = () if ns3.strip() in ("", "none") else comma_list(ns3, "ns3", example="su,ofdma")
+    access = (
+        () if ns3.strip() in ("", "none") else comma_list(ns3, "ns3", example="su,su-rts,ofdma")
+    )
     if access:
         from codesign_mb.wifi.ns3_driver import ns3_available
 

@@ -8,7 +8,10 @@ frames delivered, found by bisection (the delivered fraction falls with ``N``).
 
 Ours: the slot simulator (:class:`~codesign_mb.wifi.engine.ChannelEngine`) replays the
 traffic as a :class:`~codesign_mb.wifi.sim.Trace` under an allocator. ns-3:
-:mod:`codesign_mb.wifi.ns3_driver`, single-user EDCA and its round-robin OFDMA scheduler.
+:mod:`codesign_mb.wifi.ns3_driver`, in the schemes of :data:`NS3_SCHEMES`: single-user EDCA
+as ns-3 sets it up by default, the same with RTS/CTS for the camera frames and a TXOP for the
+AP (what a network engineer sets for a dense cell with synchronised bursts), and the
+round-robin OFDMA scheduler.
 """
 
 from __future__ import annotations
@@ -30,6 +33,7 @@ from codesign_mb.wifi.traffic import CAPTURE_MODES, TrafficConfig
 
 __all__ = [
     "CROSSCHECK_TARGET",
+    "NS3_SCHEMES",
     "CrosscheckConfig",
     "capacity",
     "crosscheck",
@@ -47,9 +51,19 @@ OURS_ASSUMPTIONS = (
     "Trigger + HE TB PPDU (UL GI 1.6 us, 2x HE-LTF) + multi-STA BlockAck; LLC/SNAP, IP, UDP, "
     "MAC header, FCS, A-MPDU delimiters; beacons every 102.4 ms; no retransmissions."
 )
+NS3_SCHEMES: dict[str, dict[str, Any]] = {
+    "su": {"access": "su"},
+    "su-rts": {"access": "su", "rts_cts_threshold_bytes": 1000, "ap_txop_limit_us": 8160},
+    "ofdma": {"access": "ofdma"},
+}
+"""ns-3 set-ups compared (:class:`~codesign_mb.wifi.ns3_driver.Ns3Scenario` fields)."""
+
 NS3_ASSUMPTIONS = {
     "su": "ns-3 3.44 802.11ax, EDCA single-user (AC_BE, A-MPDU + block ack), GI 0.8 us, "
     "control frames at the MCS's non-HT reference rate, stations 2 m from the AP.",
+    "su-rts": "as su, with RTS/CTS before every PSDU over 1000 B (the camera frames: a "
+    "collision costs an RTS) and an AC_BE TXOP limit of 8.16 ms for the AP (several state "
+    "frames per access; stations keep 0).",
     "ofdma": "ns-3 3.44 802.11ax, RrMultiUserScheduler (DL OFDMA with aggregated MU-BAR "
     "trigger, UL OFDMA after BSRP, access request every 1 ms, at most `mu_stations` per MU "
     "PPDU), GI 1.6 us; stations also contend by EDCA.",
@@ -69,7 +83,8 @@ class CrosscheckConfig:
     schedulers:
         Our allocators (``greedy``, ``convex``, ...); the best is compared.
     ns3_access:
-        ns-3 access schemes (``su``, ``ofdma``); the best is compared.
+        ns-3 set-ups (:data:`NS3_SCHEMES`: ``su``, ``su-rts``, ``ofdma``); the best is
+        compared.
     bandwidth_mhz:
         Channel width of both sides.
     periods:
@@ -85,7 +100,7 @@ class CrosscheckConfig:
     mcs: tuple[int, ...] = (0, 3, 7)
     captures: tuple[str, ...] = CAPTURE_MODES
     schedulers: tuple[str, ...] = ("greedy", "convex")
-    ns3_access: tuple[str, ...] = ("su", "ofdma")
+    ns3_access: tuple[str, ...] = ("su", "su-rts", "ofdma")
     bandwidth_mhz: int = 40
     periods: int = 8
     skip_periods: int = 2
@@ -98,6 +113,9 @@ class CrosscheckConfig:
         for m in self.mcs:
             if not (isinstance(m, int) and 0 <= m <= 11):
                 raise ValueError(f"mcs must be integers in [0, 11], got {self.mcs!r}")
+        for a in self.ns3_access:
+            if a not in NS3_SCHEMES:
+                raise ValueError(f"ns3_access must be in {tuple(NS3_SCHEMES)}, got {a!r}")
         for c in self.captures:
             if c not in CAPTURE_MODES:
                 raise ValueError(f"captures must be in {CAPTURE_MODES}, got {self.captures!r}")
@@ -223,12 +241,13 @@ def _ns3_fraction(
             return known[n]
         if progress is not None:
             progress(f"  ns-3 {access}, MCS {mcs}, {capture}, {n} stations ...")
+        scheme = NS3_SCHEMES[access]
         scenario = Ns3Scenario(
             n_stations=n,
             mcs=mcs,
-            access=access,
+            **scheme,
             bandwidth_mhz=cfg.bandwidth_mhz,
-            guard_interval_us=0.8 if access == "su" else 1.6,
+            guard_interval_us=0.8 if scheme["access"] == "su" else 1.6,
             capture=capture,
             frames=cfg.periods,
             skip_frames=cfg.skip_periods,

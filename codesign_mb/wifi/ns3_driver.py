@@ -101,7 +101,8 @@ std::vector<int64_t> RunScenario(uint32_t nSta, uint32_t mcs, uint32_t widthMhz,
                                  double accessReqUs,
                                  std::vector<int64_t> offsetsNs, double periodMs,
                                  uint32_t nFrames, double warmupS, std::vector<uint32_t> sizes,
-                                 uint32_t dlBytes, uint32_t run) {
+                                 uint32_t dlBytes, uint32_t run, int64_t rtsThreshold,
+                                 double apBeTxopUs) {
   RngSeedManager::SetSeed(1);
   RngSeedManager::SetRun(run);
   if (ofdma) {
@@ -123,6 +124,12 @@ std::vector<int64_t> RunScenario(uint32_t nSta, uint32_t mcs, uint32_t widthMhz,
   wifi.SetRemoteStationManager("ns3::ConstantRateWifiManager", "DataMode",
                                StringValue(dataMode.str()), "ControlMode",
                                StringValue(ctrlMode.str()));
+  if (rtsThreshold >= 0) {  // RTS/CTS before every PSDU longer than the threshold
+    wifi.SetRemoteStationManager("ns3::ConstantRateWifiManager", "DataMode",
+                                 StringValue(dataMode.str()), "ControlMode",
+                                 StringValue(ctrlMode.str()), "RtsCtsThreshold",
+                                 UintegerValue(static_cast<uint32_t>(rtsThreshold)));
+  }
   wifi.ConfigHeOptions("GuardInterval", TimeValue(NanoSeconds(giNs)));
   WifiMacHelper mac;
   Ssid ssid("codesign-xc");
@@ -146,6 +153,13 @@ std::vector<int64_t> RunScenario(uint32_t nSta, uint32_t mcs, uint32_t widthMhz,
   mac.SetType("ns3::ApWifiMac", "Ssid", SsidValue(ssid), "EnableBeaconJitter",
               BooleanValue(false));
   NetDeviceContainer apDev = wifi.Install(phy, mac, apNode);
+  if (apBeTxopUs > 0) {
+    // The AP's own AC_BE TXOP limit (its dot11QAPEDCATable entry); the EDCA Parameter Set
+    // it advertises keeps 0 for the stations.
+    auto apMac = DynamicCast<WifiNetDevice>(apDev.Get(0))->GetMac();
+    apMac->SetAttribute("TxopLimitsForSta", StringValue("BE 0us"));
+    apMac->GetQosTxop(AC_BE)->SetTxopLimit(MicroSeconds(static_cast<int64_t>(apBeTxopUs)));
+  }
   int64_t stream = 100;
   stream += WifiHelper::AssignStreams(apDev, stream);
   stream += WifiHelper::AssignStreams(staDev, stream);
@@ -261,6 +275,14 @@ class Ns3Scenario:
         ``NStations`` of the round-robin scheduler: most stations per MU PPDU.
     access_req_interval_us:
         How often the MU scheduler asks for the channel when the AP has nothing to send.
+    rts_cts_threshold_bytes:
+        RTS/CTS protects every PSDU longer than this (ns-3 ``RtsCtsThreshold``; ``None``:
+        ns-3's default, no RTS for these frames). With synchronised captures a collision then
+        costs an RTS, not a whole A-MPDU.
+    ap_txop_limit_us:
+        The AP's own AC_BE TXOP limit (0: none, a single frame exchange per access); a
+        multiple of 32 us up to 8 160 us (the TXOP Limit field of the EDCA Parameter Set
+        element counts 255 units of 32 us at most, IEEE 802.11-2020). The stations keep 0.
     """
 
     n_stations: int
@@ -278,6 +300,8 @@ class Ns3Scenario:
     access_req_interval_us: float = 1000.0
     warmup_s: float = 1.0
     run: int = 1
+    rts_cts_threshold_bytes: int | None = None
+    ap_txop_limit_us: float = 0.0
 
     def __post_init__(self) -> None:
         if self.access not in NS3_ACCESS:
@@ -292,6 +316,13 @@ class Ns3Scenario:
             raise ValueError("guard_interval_us must be 1.6 or 3.2 with UL OFDMA (HE TB PPDU)")
         if self.frames < 1 or self.skip_frames < 0:
             raise ValueError("frames must be >= 1 and skip_frames >= 0")
+        if not (0 <= self.ap_txop_limit_us <= 8160 and self.ap_txop_limit_us % 32 == 0):
+            raise ValueError(
+                f"ap_txop_limit_us must be a multiple of 32 in [0, 8160], got "
+                f"{self.ap_txop_limit_us!r}"
+            )
+        if self.rts_cts_threshold_bytes is not None and self.rts_cts_threshold_bytes < 0:
+            raise ValueError("rts_cts_threshold_bytes must be >= 0 or None")
 
     def datagram_sizes(self) -> list[int]:
         """The camera frame as UDP datagrams of at most 1472 bytes."""
@@ -353,6 +384,8 @@ def run_ns3(scenario: Ns3Scenario) -> Ns3Result:
         sizes,
         s.dl_frame_bytes,
         s.run,
+        -1 if s.rts_cts_threshold_bytes is None else int(s.rts_cts_threshold_bytes),
+        float(s.ap_txop_limit_us),
     )
     arr = np.asarray(list(raw), dtype=float).reshape(s.n_stations, n_frames, 3)
     arr = np.where(arr < 0, math.nan, arr / 1e6)
