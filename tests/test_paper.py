@@ -49,6 +49,8 @@ def test_every_study_runs_on_the_test_seeds_and_says_its_command() -> None:
         settings = study_settings(name, PaperConfig())
         assert settings["seed"] == SEED_SETS["test"] and settings["seeds"] == "test"
         assert study_command(name, settings).startswith("codesign ")
+    for benchmark in ("table_realistic", "table_variable"):  # the benchmark's 200 per row
+        assert study_settings(benchmark, PaperConfig(trials=7))["trials"] == 200
     dev = study_settings("table_paper", PaperConfig(seeds="dev", trials=7))
     assert dev["seed"] == SEED_SETS["dev"] and dev["trials"] == 7
     assert study_command("table_paper", dev) == (

@@ -143,8 +143,8 @@ class PaperConfig:
     trials:
         Episodes per row and plant of the tables.
     realistic_trials:
-        Episodes per row of the ``realistic`` table (the benchmark's scenario, whose ``blind``
-        and ``oracle`` references are read at 200 episodes).
+        Episodes per row of the benchmark scenarios' tables, ``realistic`` and ``variable``
+        (their ``blind`` and ``oracle`` references are read at 200 episodes).
     model_free_trials:
         Episodes per row and evaluation seed of Table I (``table_model_free``).
     fig_cn_trials:
@@ -228,7 +228,8 @@ def study_settings(name: str, config: PaperConfig) -> dict[str, Any]:
         settings.update(_SMOKE["lqg"] if smoke else {})
     elif name in TABLE_STUDIES:
         scenario, pipeline = TABLE_STUDIES[name]
-        trials = config.realistic_trials if scenario == "realistic" else config.trials
+        benchmark = scenario in ("realistic", "variable")
+        trials = config.realistic_trials if benchmark else config.trials
         if name in POOLED_SEEDS:
             trials = config.model_free_trials
         settings = {"scenario": scenario, "pipeline": pipeline, "trials": trials}
