@@ -61,8 +61,10 @@ NS3_SCHEMES: dict[str, dict[str, Any]] = {
 NS3_ASSUMPTIONS = {
     "su": "ns-3 3.44 802.11ax, EDCA single-user (AC_BE, A-MPDU + block ack), GI 0.8 us, "
     "control frames at the MCS's non-HT reference rate, stations 2 m from the AP.",
-    "su-rts": "as su, with RTS/CTS before every PSDU over 1000 B (the camera frames: a "
-    "collision costs an RTS) and an AC_BE TXOP limit of 8.16 ms for the AP (several state "
+    "su-rts": f"as su, with RTS/CTS before every PSDU over "
+    f"{NS3_SCHEMES['su-rts']['rts_cts_threshold_bytes']} B (the camera frames: a collision "
+    f"costs an RTS) and an AC_BE TXOP limit of "
+    f"{NS3_SCHEMES['su-rts']['ap_txop_limit_us'] / 1000:g} ms for the AP (several state "
     "frames per access; stations keep 0).",
     "ofdma": "ns-3 3.44 802.11ax, RrMultiUserScheduler (DL OFDMA with aggregated MU-BAR "
     "trigger, UL OFDMA after BSRP, access request every 1 ms, at most `mu_stations` per MU "
