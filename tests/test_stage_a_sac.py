@@ -14,6 +14,7 @@ from stable_baselines3.common.buffers import ReplayBuffer
 
 from codesign_mb.core.registry import ComponentSpec, PlantSpec, build, make_plant
 from codesign_mb.stages.sac_from_demos import (
+    ActorWarmup,
     BehaviourCloningTerm,
     DemoMixedReplayBuffer,
     make_sac_from_demos,
@@ -94,6 +95,36 @@ def test_bc_term_adds_the_q_normalised_cloning_gradient_and_decays() -> None:
     model.num_timesteps = 100
     assert term.beta() == 0.0
     term.remove()
+
+
+def test_actor_warmup_holds_the_actor_then_ramps_its_learning_rate() -> None:
+    env = make_plant(TOY)
+    model = make_sac_from_demos(env, TINY_SAC, seed=0)
+    warmup = ActorWarmup(model, freeze_steps=100, ramp_steps=200)
+    obs = torch.zeros((4, env.observation_space.shape[0]))
+    optimizer = model.actor.optimizer
+
+    def step() -> list[torch.Tensor]:
+        before = [p.detach().clone() for p in model.actor.parameters()]
+        optimizer.zero_grad()
+        model.actor(obs, deterministic=True).sum().backward()
+        optimizer.step()
+        return before
+
+    model.num_timesteps = 60  # frozen: a real gradient, no change
+    before = step()
+    for old, new in zip(before, model.actor.parameters(), strict=True):
+        assert torch.equal(old, new)
+    assert optimizer.param_groups[0]["lr"] == 0.0
+    model.num_timesteps = 150  # a quarter of the way up the ramp
+    before = step()
+    assert optimizer.param_groups[0]["lr"] == pytest.approx(0.25 * TINY_SAC.learning_rate)
+    moved = zip(before, model.actor.parameters(), strict=True)
+    assert any(not torch.equal(old, new) for old, new in moved)
+    model.num_timesteps = 10_000
+    step()
+    assert optimizer.param_groups[0]["lr"] == pytest.approx(TINY_SAC.learning_rate)
+    warmup.remove()
 
 
 def test_curriculum_caps_the_per_episode_speed_range() -> None:

@@ -31,6 +31,7 @@ from torch import nn
 from codesign_mb.stages.training import make_sac
 
 __all__ = [
+    "ActorWarmup",
     "BehaviourCloningTerm",
     "DemoMixedReplayBuffer",
     "LayerNormSacPolicy",
@@ -161,6 +162,43 @@ class BehaviourCloningTerm:
         loss = beta * q_scale * ((mean_action - target) ** 2).sum(dim=1).mean()
         loss.backward()
         self.last_loss = float(loss.detach())
+
+
+class ActorWarmup:
+    """The actor's learning rate: 0 for ``freeze_steps`` env steps, then a linear ramp.
+
+    A SAC started from a behaviour clone has a critic that has seen the demonstrations but
+    not the clone's own states; the first actor steps then follow the critic's extrapolation
+    (measured: a clone at 100 % fell to 86 % within 2 000 updates at any BC weight). Holding
+    the actor still while the critic learns the clone's rollouts, then raising its learning
+    rate from 0 to SB3's over ``ramp_steps``, is the critic-only phase and learning-rate
+    warm-up of PIRLNav (Ramrakhya et al. 2023). A step pre-hook of the actor's optimiser
+    rescales the rate SB3 set for this update (SB3's update itself is unchanged; Adam's
+    moment estimates keep accumulating while the rate is 0). Not saved with the model:
+    register it again on resume (it reads ``model.num_timesteps`` only).
+    """
+
+    def __init__(self, model: Any, *, freeze_steps: int, ramp_steps: int) -> None:
+        if freeze_steps < 0 or ramp_steps < 0:
+            raise ValueError("freeze_steps and ramp_steps must be >= 0")
+        self.model = model
+        self.freeze_steps, self.ramp_steps = int(freeze_steps), int(ramp_steps)
+        self._handle = model.actor.optimizer.register_step_pre_hook(self._hook)
+
+    def factor(self) -> float:
+        """The share of SB3's learning rate the actor uses at the current env step."""
+        past = int(self.model.num_timesteps) - self.freeze_steps
+        if past <= 0:
+            return 0.0
+        return 1.0 if self.ramp_steps == 0 else min(past / self.ramp_steps, 1.0)
+
+    def remove(self) -> None:
+        self._handle.remove()
+
+    def _hook(self, optimizer: Any, args: Any, kwargs: Any) -> None:
+        rate = float(self.model.lr_schedule(self.model._current_progress_remaining))
+        for group in optimizer.param_groups:
+            group["lr"] = rate * self.factor()
 
 
 def make_sac_from_demos(

@@ -52,7 +52,11 @@ from codesign_mb.network.link import BernoulliLink
 from codesign_mb.network.wrapper import LinkObservationWrapper
 from codesign_mb.rollout.loop import rollout
 from codesign_mb.stages.demonstrations import add_demonstrations, clone_behaviour, warm_up_critic
-from codesign_mb.stages.sac_from_demos import BehaviourCloningTerm, make_sac_from_demos
+from codesign_mb.stages.sac_from_demos import (
+    ActorWarmup,
+    BehaviourCloningTerm,
+    make_sac_from_demos,
+)
 from codesign_mb.stages.stage_a_aids import (
     Curriculum,
     EstimatedStateEnv,
@@ -129,6 +133,10 @@ class StageAConfig:
         steps. 0: off.
     critic_warmup_steps:
         SAC gradient steps on the demonstrations with the actor frozen, before learning.
+    actor_freeze_steps, actor_ramp_steps:
+        Env steps of SAC's own experience with the actor's learning rate at 0 (the critic
+        learns the clone's rollouts), then steps over which it rises linearly to
+        ``sac.learning_rate`` (:class:`ActorWarmup`). 0, 0: the actor learns from the start.
     curriculum:
         Top belt speeds (m/s) of SAC's own episodes before the plant's own, each for an
         equal share of ``total_steps`` (:func:`~codesign_mb.stages.stage_a_aids.plant_at_speed`);
@@ -171,6 +179,8 @@ class StageAConfig:
     bc_weight: float = 10.0
     bc_decay_steps: int = 100_000
     critic_warmup_steps: int = 2_000
+    actor_freeze_steps: int = 0
+    actor_ramp_steps: int = 0
     curriculum: tuple[float, ...] = (0.35,)
     shaping_weight: float = 5.0
     grip_penalty: float = 1.0
@@ -180,7 +190,14 @@ class StageAConfig:
     def __post_init__(self) -> None:
         require_at_least(self, 1, "total_steps", "chunk_steps", cap=TRAINING_STEPS_CAP)
         require_at_least(self, 0, "eval_episodes", "demo_episodes", cap=EPISODES_CAP)
-        require_at_least(self, 0, "critic_warmup_steps", cap=TRAINING_STEPS_CAP)
+        require_at_least(
+            self,
+            0,
+            "critic_warmup_steps",
+            "actor_freeze_steps",
+            "actor_ramp_steps",
+            cap=TRAINING_STEPS_CAP,
+        )
         require_at_least(self, 1, "bc_decay_steps", cap=TRAINING_STEPS_CAP)
         require_at_least(self, 0, "bc_epochs", cap=EPOCHS_CAP)
         require_at_least(self, 0, "demo_noise_std", "bc_weight", "shaping_weight")
@@ -273,12 +290,16 @@ def train_stage_a(
     assert state is not None
     state.total_steps = config.total_steps
     bc_term = _bc_term(config, model, work_dir)
+    warmup = ActorWarmup(
+        model, freeze_steps=config.actor_freeze_steps, ramp_steps=config.actor_ramp_steps
+    )
     if "setup_wall_time_s" not in state.extra:  # demonstrations, cloning, critic warm-up
         state.extra["setup_wall_time_s"] = round(time.perf_counter() - launched, 1)
     started = time.perf_counter()
     _learn(config, model, state, work_dir=work_dir, schedule=schedule, progress=progress)
     if bc_term is not None:
         bc_term.remove()
+    warmup.remove()
     model = _shipped(config, model, work_dir)
     final = _final_evaluation(config, model, work_dir)
     state.extra["session_wall_time_s"] = round(time.perf_counter() - started, 1)
