@@ -187,3 +187,39 @@ def test_tiny_stage_a_ships_a_sac_trained_actor_not_the_clone(tmp_path: Path) ->
     model = SAC.load(tmp_path / "work" / "model.zip", device="cpu")
     model.load_replay_buffer(tmp_path / "work" / "replay_buffer.pkl")
     assert model.replay_buffer.demo is not None and model.replay_buffer.demo.size() == 80
+
+
+def test_frozen_actor_chunks_are_evaluated_but_never_shipped(tmp_path: Path) -> None:
+    """With the actor held still for the first chunk, that chunk is the clone's: not shipped."""
+    config = StageAConfig(
+        plant=TOY,
+        estimator=ComponentSpec("none"),
+        sac=TINY_SAC,
+        total_steps=120,
+        chunk_steps=60,
+        eval_episodes=1,
+        demo=ComponentSpec("toy_pick"),
+        demo_episodes=2,
+        bc_epochs=2,
+        critic_warmup_steps=5,
+        actor_freeze_steps=60,
+        actor_ramp_steps=30,
+        curriculum=(),
+        final_eval_episodes=1,
+    )
+    train_stage_a(config, out_dir=tmp_path / "out", work_dir=tmp_path / "work")
+    curve = json.loads((tmp_path / "out" / "curve.json").read_text())
+    assert [(p["steps"], p["actor"]) for p in curve] == [
+        (0, "bc"),
+        (60, "bc (frozen)"),
+        (120, "sac"),
+    ]
+    meta = json.loads((tmp_path / "out" / "training.json").read_text())
+    assert meta["best"]["steps"] == 120  # the only SAC-updated actor, whatever it scored
+    clone, shipped = (
+        _actor_params(tmp_path / "out" / "bc.zip"),
+        _actor_params(tmp_path / "out" / "model.zip"),
+    )
+    assert any(not torch.equal(a, b) for a, b in zip(clone, shipped, strict=True))
+    with pytest.raises(ValueError, match="actor_freeze_steps"):
+        StageAConfig(total_steps=100, actor_freeze_steps=100)

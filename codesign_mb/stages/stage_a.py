@@ -33,7 +33,7 @@ from __future__ import annotations
 
 import shutil
 import time
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -210,6 +210,8 @@ class StageAConfig:
             raise ValueError(f"curriculum belt speeds must be >= 0, got {self.curriculum}")
         if self.grip_penalty < 0 or self.grip_radius_m <= 0:
             raise ValueError("grip_penalty must be >= 0 and grip_radius_m > 0")
+        if self.actor_freeze_steps >= self.total_steps:
+            raise ValueError("actor_freeze_steps must be < total_steps (the actor must learn)")
         uses_demos = self.bc_epochs or self.critic_warmup_steps or self.bc_weight
         if uses_demos and not self.demo_episodes:
             raise ValueError("bc_epochs / bc_weight / critic_warmup_steps need demo_episodes > 0")
@@ -459,23 +461,36 @@ def _learn(
         work_dir=work_dir,
         chunk_steps=config.chunk_steps,
         evaluate=(lambda m: _evaluate(config, m)) if config.eval_episodes else None,
-        on_chunk=_diagnostics,
+        on_chunk=lambda m, s: _diagnostics(m, config.actor_freeze_steps),
         callback=Curriculum(schedule) if schedule else None,
         progress=progress,
         description="stage A (SAC, ideal control)",
-        keep_best="success_rate" if config.eval_episodes else None,
+        keep_best=(lambda point: _sac_score(point)) if config.eval_episodes else None,
     )
 
 
-def _diagnostics(model: Any, state: TrainingState) -> dict[str, Any]:
-    """What the collapse diagnosis watches: entropy coefficient, SB3's last losses."""
+def _sac_score(point: Mapping[str, Any]) -> float | None:
+    """``keep_best``'s score: the dev success of a SAC-updated actor; ``None`` for the clone.
+
+    While :class:`ActorWarmup` holds the actor at learning rate 0 its evaluations are the
+    clone's; they are on the curve but may never be shipped as ``model.zip``.
+    """
+    return float(point["success_rate"]) if point.get("actor") == "sac" else None
+
+
+def _diagnostics(model: Any, freeze_steps: int) -> dict[str, Any]:
+    """What the collapse diagnosis watches: entropy coefficient, SB3's last losses.
+
+    ``actor`` is ``sac`` once SAC has updated the actor, ``bc (frozen)`` before.
+    """
     values = getattr(model.logger, "name_to_value", {})
     out = {
         key.split("/")[-1]: float(values[key])
         for key in ("train/ent_coef", "train/actor_loss", "train/critic_loss")
         if key in values
     }
-    return {**out, "actor": "sac"}
+    updated = int(model.num_timesteps) > freeze_steps
+    return {**out, "actor": "sac" if updated else "bc (frozen)"}
 
 
 def _shipped(config: StageAConfig, model: Any, work_dir: Path) -> Any:

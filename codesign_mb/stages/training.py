@@ -279,7 +279,7 @@ def train_sac_in_chunks(
     progress: Progress = no_progress,
     description: str = "training",
     save_buffer: bool = True,
-    keep_best: str | Callable[[Mapping[str, Any]], float] | None = None,
+    keep_best: str | Callable[[Mapping[str, Any]], float | None] | None = None,
 ) -> TrainingState:
     """Run ``model.learn`` chunk by chunk until ``state.total_steps``, checkpointing each chunk.
 
@@ -289,9 +289,9 @@ def train_sac_in_chunks(
     resumed run continues where the last checkpoint left it.
 
     With ``keep_best`` (a key of the evaluation, e.g. ``"success_rate"``, or a function of
-    the curve point that scores it), the model of the best evaluation so far (ties: the
-    later) is also kept as ``best_model.zip`` and recorded in ``state.extra["best"]``
-    (SB3's ``EvalCallback`` practice).
+    the curve point that scores it, ``None`` for a point that may not be shipped), the model
+    of the best evaluation so far (ties: the later) is also kept as ``best_model.zip`` and
+    recorded in ``state.extra["best"]`` (SB3's ``EvalCallback`` practice).
     """
     if chunk_steps < 1:
         raise ValueError(f"chunk_steps must be >= 1, got {chunk_steps}")
@@ -328,7 +328,7 @@ def train_sac_in_chunks(
 
 
 def _score(
-    keep_best: str | Callable[[Mapping[str, Any]], float] | None, point: Mapping[str, Any]
+    keep_best: str | Callable[[Mapping[str, Any]], float | None] | None, point: Mapping[str, Any]
 ) -> float | None:
     if keep_best is None:
         return None
