@@ -62,6 +62,10 @@ def test_layer_norm_critics_and_plain_actor() -> None:
     assert len(target) == len(critic_norms)
     plain = make_sac_from_demos(env, TINY_SAC, seed=0, layer_norm_critics=False)
     assert not any(isinstance(m, torch.nn.LayerNorm) for m in plain.critic.modules())
+    wide = make_sac_from_demos(env, TINY_SAC, seed=0, n_critics=5)
+    obs = torch.zeros((3, env.observation_space.shape[0]))
+    values = wide.critic(obs, torch.zeros((3, 4)))
+    assert len(values) == 5 and len(wide.critic_target(obs, torch.zeros((3, 4)))) == 5
 
 
 def test_bc_term_adds_the_q_normalised_cloning_gradient_and_decays() -> None:

@@ -209,19 +209,21 @@ def make_sac_from_demos(
     demo_fraction: float = 0.5,
     layer_norm_critics: bool = True,
     target_entropy: float | None = None,
+    n_critics: int = 2,
 ) -> Any:
     """A fresh SB3 SAC (CPU, one torch thread) with the demo-mixed buffer and LayerNorm critics.
 
     ``spec`` is a :class:`~codesign_mb.stages.training.SacSpec`; its ``gradient_steps`` is
-    the update-to-data ratio. Fill the demonstrations with
-    ``model.replay_buffer.set_demonstrations(buffer)``.
+    the update-to-data ratio; ``n_critics`` SB3's critic ensemble (its target and actor loss
+    take the minimum over all of them: more critics, a more pessimistic Q). Fill the
+    demonstrations with ``model.replay_buffer.set_demonstrations(buffer)``.
     """
     return make_sac(
         env,
         spec,
         seed=seed,
         policy=LayerNormSacPolicy if layer_norm_critics else "MlpPolicy",
-        policy_kwargs={"optimizer_kwargs": {"foreach": True}},  # one kernel per step
+        policy_kwargs={"optimizer_kwargs": {"foreach": True}, "n_critics": int(n_critics)},
         target_entropy="auto" if target_entropy is None else float(target_entropy),
         replay_buffer_class=DemoMixedReplayBuffer,
         replay_buffer_kwargs={"demo_fraction": demo_fraction},

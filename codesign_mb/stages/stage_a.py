@@ -101,6 +101,9 @@ class StageAConfig:
         SAC hyper-parameters; ``gradient_steps`` is the update-to-data ratio.
     layer_norm_critics:
         LayerNorm after each hidden layer of the critics (:class:`LayerNormSacPolicy`).
+    n_critics:
+        Critics in SB3's ensemble; SAC's target and actor loss take their minimum (2: SB3's
+        clipped double Q; more: more pessimistic about actions the data never took).
     target_entropy:
         SAC's entropy target (nats); ``None``: SB3's ``-dim(action)``.
     total_steps:
@@ -164,6 +167,7 @@ class StageAConfig:
         )
     )
     layer_norm_critics: bool = True
+    n_critics: int = 2
     target_entropy: float | None = -8.0
     total_steps: int = 20_000
     chunk_steps: int = 5_000
@@ -190,6 +194,8 @@ class StageAConfig:
     def __post_init__(self) -> None:
         require_at_least(self, 1, "total_steps", "chunk_steps", cap=TRAINING_STEPS_CAP)
         require_at_least(self, 0, "eval_episodes", "demo_episodes", cap=EPISODES_CAP)
+        if not 1 <= self.n_critics <= 16:
+            raise ValueError(f"n_critics must be in [1, 16], got {self.n_critics}")
         require_at_least(
             self,
             0,
@@ -372,6 +378,7 @@ def _start(config: StageAConfig, env: gym.Env, work_dir: Path) -> tuple[Any, Tra
         seed=config.seed,
         demo_fraction=config.demo_fraction if config.demo_episodes else 0.0,
         layer_norm_critics=config.layer_norm_critics,
+        n_critics=config.n_critics,
         target_entropy=config.target_entropy,
     )
     if config.demo_episodes:
