@@ -27,7 +27,7 @@ from numpy.typing import NDArray
 
 from codesign_mb.adaptation.base import StaticQos
 from codesign_mb.control.mpc import MpcConfig, MpcController, MpcQp
-from codesign_mb.control.mpc_qp import lag_discretisation
+from codesign_mb.control.mpc_qp_problem import lag_discretisation
 from codesign_mb.core.seeds import seed_set
 from codesign_mb.estimation.base import PassThroughEstimator
 from codesign_mb.estimation.predictor import DelayCompensatingPredictor

@@ -1,9 +1,9 @@
 """Model predictive control of the conveyor pick: the phases and the controller.
 
 The ideal controller ``pi_c`` of paper.tex sec. 4.A (``eq_control_ideal``), done model-based.
-The model, the QP and its solvers are in :mod:`codesign_mb.control.mpc_qp` (:class:`MpcQp`),
-the settings in :mod:`codesign_mb.control.mpc_config` (:class:`MpcConfig`); both are
-re-exported here.
+The model and the QP are in :mod:`codesign_mb.control.mpc_qp_problem`, the QP's solvers in
+:mod:`codesign_mb.control.mpc_qp` (:class:`MpcQp`), the settings in
+:mod:`codesign_mb.control.mpc_config` (:class:`MpcConfig`); both classes are re-exported here.
 
 Phases (explicit, :class:`Phase`)
 ---------------------------------
@@ -31,8 +31,9 @@ from numpy.typing import NDArray
 from codesign_mb.control.mpc_config import SOLVERS, MpcConfig, config_fields
 from codesign_mb.control.mpc_kernels import fill_parameters
 from codesign_mb.control.mpc_model import JointLimits, joint_linearisation
-from codesign_mb.control.mpc_qp import OFF, MpcQp, MpcSolution, lag_discretisation
+from codesign_mb.control.mpc_qp import MpcQp, MpcSolution
 from codesign_mb.control.mpc_qp import _quiet_stdout as _quiet_stdout  # tests silence qpOASES
+from codesign_mb.control.mpc_qp_problem import OFF, lag_discretisation
 from codesign_mb.core.config import from_mapping
 
 __all__ = [

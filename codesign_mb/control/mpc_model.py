@@ -1,7 +1,7 @@
 """What the conveyor MPC knows of the arm: the ramp, the joint limits, the terminal cost.
 
-Three pieces of :class:`~codesign_mb.control.mpc_qp.MpcQp`'s model, kept apart from the QP's
-construction:
+Three pieces of the model of :class:`~codesign_mb.control.mpc_qp_problem.MpcQpProblem` (the
+MPC's QP), kept apart from the QP's construction:
 
 * :func:`ramp_rows`: the low level (:mod:`codesign_mb.robot.osc`) slews its velocity
   reference towards a new command at most ``a_max`` (in norm) per second. The MPC's model
@@ -155,7 +155,7 @@ def terminal_weights(
 
     The model in error coordinates (reference moving at the reference velocity):
     ``e_p+ = e_p + bp_v e_v + bp_u e_u``, ``e_v+ = a e_v + (1 - a) e_u``, ``e_u-+ = e_u``;
-    the stage cost of :class:`~codesign_mb.control.mpc_qp.MpcQp`,
+    the stage cost of :class:`~codesign_mb.control.mpc_qp_problem.MpcQpProblem`,
     ``position e_p+^2 + velocity e_v+^2 + command e_u^2 + rate (e_u - e_u-)^2``, written as
     ``|C x + D u|^2_W``. ``P`` solves the DARE with ``Q = C'WC``, ``R = D'WD``, ``S = C'WD``
     (python-control's ``dare``).
