@@ -14,7 +14,13 @@ from typer.testing import CliRunner
 
 from codesign_mb.cli import report as report_cli
 from codesign_mb.core.results import ResultsDir, write_results
-from codesign_mb.studies import fig_cn, fig_wifi_figures, sweep_figures, table_figures
+from codesign_mb.studies import (
+    fig_cn,
+    fig_wifi_figures,
+    sweep_figures,
+    table_figures,
+    table_pareto_plot,
+)
 from codesign_mb.studies.report import ReportConfig, build_report, success_summary
 from codesign_mb.studies.sweep import SweepConfig, run_sweep
 
@@ -251,7 +257,7 @@ def test_report_draws_with_the_studies_renderers(
     )
     calls: dict[str, list[Path]] = {}
     for figure, module, name in (
-        ("tab_p", table_figures, "plot_pareto"),
+        ("tab_p", table_pareto_plot, "plot_pareto"),
         ("fig_cn", fig_cn, "plot_fig_cn"),
         ("fig_lat", table_figures, "plot_timeline"),
         ("fig_wifi", fig_wifi_figures, "plot_capacity"),

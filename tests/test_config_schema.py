@@ -101,7 +101,7 @@ def _cli_configs() -> list[type]:
     from codesign_mb.studies.demo import LqgDemoConfig, RobotDemoConfig
     from codesign_mb.studies.fig_cn import FigCnConfig
     from codesign_mb.studies.fig_wifi import CapacityConfig
-    from codesign_mb.studies.paper import PaperConfig
+    from codesign_mb.studies.paper_studies import PaperConfig
     from codesign_mb.studies.render import RenderConfig
     from codesign_mb.studies.report_sections import ReportConfig
     from codesign_mb.studies.sweep import SweepConfig

@@ -17,13 +17,11 @@ from codesign_mb.core.seeds import SEED_SETS
 from codesign_mb.studies import paper
 from codesign_mb.studies.demo import LqgDemoConfig, run_lqg_demo
 from codesign_mb.studies.fig_wifi import CapacityConfig
-from codesign_mb.studies.paper import (
+from codesign_mb.studies.paper import MANIFEST, read_study, run_paper
+from codesign_mb.studies.paper_studies import (
     FIG_WIFI_GRID,
-    MANIFEST,
     STUDIES,
     PaperConfig,
-    read_study,
-    run_paper,
     study_command,
     study_settings,
 )

@@ -12,9 +12,10 @@ import pytest
 from codesign_mb.core.config import to_mapping
 from codesign_mb.core.results import write_results
 from codesign_mb.core.stats import wilson_interval
-from codesign_mb.studies import paper
+from codesign_mb.studies import paper, paper_studies
 from codesign_mb.studies.fig_wifi import CapacityConfig
-from codesign_mb.studies.paper import PaperConfig, run_paper
+from codesign_mb.studies.paper import run_paper
+from codesign_mb.studies.paper_studies import PaperConfig
 from codesign_mb.studies.readme import (
     BEGIN,
     END,
@@ -38,7 +39,7 @@ def test_readme_results_block_is_the_rendering_of_docs_results() -> None:
     assert block == render_results(ROOT / "docs" / "results")
     run = json.loads((ROOT / "docs" / "results" / "paper.json").read_text())
     for name, study in run["studies"].items():
-        if name in paper.STUDIES[:-1]:
+        if name in paper_studies.STUDIES[:-1]:
             assert (ROOT / "docs" / "results" / f"{name}.json").is_file()
             assert f"`{study['command']}`" in block
     for figure in (ROOT / "docs" / "figures").glob("fig_*.png"):

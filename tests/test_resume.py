@@ -354,6 +354,7 @@ def test_an_interrupted_paper_study_resumes_from_its_episodes(
     folder, and the rerun continues it (here a toy table stands in for a table study)."""
     from codesign_mb.core.registry import ComponentSpec, PlantSpec
     from codesign_mb.studies import paper
+    from codesign_mb.studies.paper_studies import PaperConfig
     from codesign_mb.studies.table import TableConfig
     from codesign_mb.studies.table_figures import run_table_study
     from codesign_mb.studies.table_rows import TableRow
@@ -370,7 +371,7 @@ def test_an_interrupted_paper_study_resumes_from_its_episodes(
     monkeypatch.setattr(paper, "_run_table", toy_table)
     calls = _count_episodes(monkeypatch)
     out = tmp_path / "paper"
-    config = paper.PaperConfig(only=("table_realistic",), workers=1)
+    config = PaperConfig(only=("table_realistic",), workers=1)
     partial = out / ".table_realistic.partial" / ".records"
     with pytest.raises(KeyboardInterrupt) as caught:
         paper.run_paper(config, out, progress=_interrupting_track(after=4))

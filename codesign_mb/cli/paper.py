@@ -35,7 +35,7 @@ __all__ = ["paper_command", "readme_command", "register"]
 _STUDY_NAMES = (
     "lqg, table_realistic, table_variable, table_model_free, table_paper, fig_cn, fig_wifi, figures"
 )
-"""The names of :data:`codesign_mb.studies.paper.STUDIES` (``--help`` imports no study)."""
+"""The names of :data:`codesign_mb.studies.paper_studies.STUDIES` (``--help`` imports no study)."""
 
 ReadmeOption = Annotated[
     Path,
@@ -106,7 +106,8 @@ def paper_command(
     as_json: JsonOption = False,
 ) -> None:
     """Run every table and figure of README's results (test seeds) into OUT/<study>/."""
-    from codesign_mb.studies.paper import PaperConfig, run_paper
+    from codesign_mb.studies.paper import run_paper
+    from codesign_mb.studies.paper_studies import PaperConfig
 
     cfg = load_config(
         PaperConfig,

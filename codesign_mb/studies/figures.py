@@ -1,11 +1,12 @@
 """What the figures of the studies share: a figure without pyplot, PNG files, curve styles.
 
 Every figure of the toolkit has one renderer, in the study that owns it (Table I's Pareto
-plot and Fig. 5 in :mod:`codesign_mb.studies.table_figures`, Fig. 4 in
-:mod:`codesign_mb.studies.fig_cn`, Fig. 6 in :mod:`codesign_mb.studies.fig_wifi`, sweeps in
-:mod:`codesign_mb.studies.sweep`); ``codesign report`` calls those same renderers. They draw
-on a :class:`matplotlib.figure.Figure` (no pyplot: no global figure state, nothing left open)
-and write a PNG without a timestamp, atomically.
+plot in :mod:`codesign_mb.studies.table_pareto_plot`, Fig. 5 in
+:mod:`codesign_mb.studies.table_figures`, Fig. 4 in :mod:`codesign_mb.studies.fig_cn`, Fig. 6
+in :mod:`codesign_mb.studies.fig_wifi`, sweeps in :mod:`codesign_mb.studies.sweep`);
+``codesign report`` calls those same renderers. They draw on a
+:class:`matplotlib.figure.Figure` (no pyplot: no global figure state, nothing left open) and
+write a PNG without a timestamp, atomically.
 
 Curves are identified by *label columns* (e.g. ``pipeline``, ``estimator``): a curve's colour
 follows its labels other than ``pipeline``, its line style the pipeline (the learned one, the

@@ -31,7 +31,8 @@ import pandas as pd
 from codesign_mb.core.results import ResultsDir, atomic_write, to_jsonable
 from codesign_mb.plants.outcomes import FAILURE_REASONS
 from codesign_mb.plants.phases import PHASES
-from codesign_mb.studies.paper import MANIFEST, STUDIES, TABLE_STUDIES, read_study
+from codesign_mb.studies.paper import MANIFEST, read_study
+from codesign_mb.studies.paper_studies import STUDIES, TABLE_STUDIES
 from codesign_mb.studies.readme_tables import SECTIONS, header, wall_times
 
 __all__ = [

@@ -56,8 +56,8 @@ summed, next to its success rates.
 Figures
 -------
 The report draws each figure with the one renderer of the study that owns it:
-:func:`~codesign_mb.studies.table_figures.plot_pareto` (``tab_p``, with the paper's Table I
-as crosses), :func:`~codesign_mb.studies.fig_cn.plot_fig_cn`,
+:func:`~codesign_mb.studies.table_pareto_plot.plot_pareto` (``tab_p``, with the paper's
+Table I as crosses), :func:`~codesign_mb.studies.fig_cn.plot_fig_cn`,
 :func:`~codesign_mb.studies.table_figures.plot_timeline` (``fig_lat``),
 :func:`~codesign_mb.studies.fig_wifi_figures.plot_capacity` (``fig_wifi``) and
 :func:`~codesign_mb.studies.sweep_figures.plot_sweep`; this module turns a results folder's

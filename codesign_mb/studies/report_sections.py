@@ -2,8 +2,8 @@
 
 Each ``_render_<name>`` turns a results folder's table (see :mod:`codesign_mb.studies.report`
 for names and columns) into the input of the one renderer of its figure, calls it and writes
-the Markdown of its section: :func:`~codesign_mb.studies.table_figures.plot_pareto` (Table I,
-with the paper's figures as crosses), :func:`~codesign_mb.studies.fig_cn.plot_fig_cn`,
+the Markdown of its section: :func:`~codesign_mb.studies.table_pareto_plot.plot_pareto`
+(Table I, with the paper's figures as crosses), :func:`~codesign_mb.studies.fig_cn.plot_fig_cn`,
 :func:`~codesign_mb.studies.table_figures.plot_timeline` (Fig. 5),
 :func:`~codesign_mb.studies.fig_wifi_figures.plot_capacity` (Fig. 6) and
 :func:`~codesign_mb.studies.sweep_figures.plot_sweep`.
@@ -22,7 +22,13 @@ import pandas as pd
 
 from codesign_mb.core.config import Cap, check_range
 from codesign_mb.core.stats import wilson_interval
-from codesign_mb.studies import fig_cn, fig_wifi_figures, sweep_figures, table_figures
+from codesign_mb.studies import (
+    fig_cn,
+    fig_wifi_figures,
+    sweep_figures,
+    table_figures,
+    table_pareto_plot,
+)
 from codesign_mb.studies.figures import curve_label, curves, pipeline_label, varying
 from codesign_mb.studies.table_select import pareto_front
 
@@ -272,7 +278,7 @@ def _render_tab_p(frame: pd.DataFrame, out: Path, cfg: ReportConfig) -> Section:
         shown["MPC failures"] = [
             "" if math.isnan(v) else str(int(v)) for v in summary["mpc_failures"].astype(float)
         ]
-    figure = table_figures.plot_pareto(
+    figure = table_pareto_plot.plot_pareto(
         _tab_p_points(summary, labels),
         out / "tab_p.png",
         title="Table I: success versus network use",
@@ -298,7 +304,7 @@ def _render_tab_p(frame: pd.DataFrame, out: Path, cfg: ReportConfig) -> Section:
 
 
 def _tab_p_points(summary: pd.DataFrame, labels: list[str]) -> pd.DataFrame:
-    """The summary as :func:`~codesign_mb.studies.table_figures.plot_pareto`'s input."""
+    """The summary as :func:`~codesign_mb.studies.table_pareto_plot.plot_pareto`'s input."""
     keys = [c for c in labels if c != "plant"]
     shown = varying(summary, keys) if keys else []
     points = _rename_ci(summary).assign(

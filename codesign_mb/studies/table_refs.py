@@ -170,7 +170,7 @@ def random_reference(row: TableRow, probability: float, latency_steps: float) ->
     )
 
 
-# -- how the Pareto figure draws them (table_figures.plot_pareto) ------------------------------
+# -- how the Pareto figure draws them (table_pareto_plot.plot_pareto) --------------------------
 _MARKERS = {"blind": "v", "oracle": "*", "static": "D", "random": "X"}
 _LABELS = {
     "blind": "blind (q = 0)",
