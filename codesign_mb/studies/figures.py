@@ -3,7 +3,8 @@
 Every figure of the toolkit has one renderer, in the study that owns it (Table I's Pareto
 plot in :mod:`codesign_mb.studies.table_pareto_plot`, Fig. 5 in
 :mod:`codesign_mb.studies.table_figures`, Fig. 4 in :mod:`codesign_mb.studies.fig_cn`, Fig. 6
-in :mod:`codesign_mb.studies.fig_wifi`, sweeps in :mod:`codesign_mb.studies.sweep`);
+in :mod:`codesign_mb.studies.fig_wifi_figures`, sweeps in
+:mod:`codesign_mb.studies.sweep_figures`);
 ``codesign report`` calls those same renderers. They draw on a
 :class:`matplotlib.figure.Figure` (no pyplot: no global figure state, nothing left open) and
 write a PNG without a timestamp, atomically.
