@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -158,22 +159,27 @@ def _actor_params(path: Path) -> list[torch.Tensor]:
     return [p.detach().clone() for p in SAC.load(path, device="cpu").actor.parameters()]
 
 
+def _tiny_config(**overrides: Any) -> StageAConfig:
+    """Stage A on the toy plant in two 60-step chunks, one evaluation episode each."""
+    options: dict[str, Any] = {
+        "plant": TOY,
+        "estimator": ComponentSpec("none"),
+        "sac": TINY_SAC,
+        "total_steps": 120,
+        "chunk_steps": 60,
+        "eval_episodes": 1,
+        "demo": ComponentSpec("toy_pick"),
+        "demo_episodes": 2,
+        "bc_epochs": 2,
+        "critic_warmup_steps": 5,
+        "curriculum": (),
+        "final_eval_episodes": 1,
+    }
+    return StageAConfig(**{**options, **overrides})
+
+
 def test_tiny_stage_a_ships_a_sac_trained_actor_not_the_clone(tmp_path: Path) -> None:
-    config = StageAConfig(
-        plant=TOY,
-        estimator=ComponentSpec("none"),
-        sac=TINY_SAC,
-        total_steps=120,
-        chunk_steps=60,
-        eval_episodes=1,
-        demo=ComponentSpec("toy_pick"),
-        demo_episodes=2,
-        bc_epochs=2,
-        bc_decay_steps=100,
-        critic_warmup_steps=5,
-        curriculum=(),
-        final_eval_episodes=1,
-    )
+    config = _tiny_config(bc_decay_steps=100)
     train_stage_a(config, out_dir=tmp_path / "out", work_dir=tmp_path / "work", command="t")
     meta = json.loads((tmp_path / "out" / "training.json").read_text())
     assert meta["env_steps"] == 120 and meta["command"] == "t"
@@ -195,22 +201,7 @@ def test_tiny_stage_a_ships_a_sac_trained_actor_not_the_clone(tmp_path: Path) ->
 
 def test_frozen_actor_chunks_are_evaluated_but_never_shipped(tmp_path: Path) -> None:
     """With the actor held still for the first chunk, that chunk is the clone's: not shipped."""
-    config = StageAConfig(
-        plant=TOY,
-        estimator=ComponentSpec("none"),
-        sac=TINY_SAC,
-        total_steps=120,
-        chunk_steps=60,
-        eval_episodes=1,
-        demo=ComponentSpec("toy_pick"),
-        demo_episodes=2,
-        bc_epochs=2,
-        critic_warmup_steps=5,
-        actor_freeze_steps=60,
-        actor_ramp_steps=30,
-        curriculum=(),
-        final_eval_episodes=1,
-    )
+    config = _tiny_config(actor_freeze_steps=60, actor_ramp_steps=30)
     train_stage_a(config, out_dir=tmp_path / "out", work_dir=tmp_path / "work")
     curve = json.loads((tmp_path / "out" / "curve.json").read_text())
     assert [(p["steps"], p["actor"]) for p in curve] == [
