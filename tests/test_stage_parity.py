@@ -23,8 +23,7 @@ from codesign_mb.stages.demonstrations import add_demonstrations
 from codesign_mb.stages.episodes import DelayDistribution, EpisodeData, RandomQos, collect_episodes
 from codesign_mb.stages.fitting import new_estimator
 from codesign_mb.stages.qos_env import QosAdaptationEnv, QosEnvConfig
-from codesign_mb.stages.stage_a import evaluate_ideal
-from codesign_mb.stages.stage_a_aids import Shaping
+from codesign_mb.stages.stage_a_aids import Shaping, evaluate_ideal
 from codesign_mb.stages.training import SacSpec, make_sac, stage_seeds
 
 TOY = PlantSpec("toy", {"horizon": 40})

@@ -33,7 +33,7 @@ from __future__ import annotations
 
 import shutil
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -43,14 +43,9 @@ import numpy as np
 from stable_baselines3 import SAC
 from stable_baselines3.common.buffers import ReplayBuffer
 
-from codesign_mb.adaptation.base import StaticQos
-from codesign_mb.control.base import Controller
 from codesign_mb.control.sac import SacController
 from codesign_mb.core.config import EPISODES_CAP, TRAINING_STEPS_CAP
-from codesign_mb.core.registry import ComponentSpec, PlantSpec, build, make_plant
-from codesign_mb.network.link import BernoulliLink
-from codesign_mb.network.wrapper import LinkObservationWrapper
-from codesign_mb.rollout.loop import rollout
+from codesign_mb.core.registry import ComponentSpec, PlantSpec, build
 from codesign_mb.stages.demonstrations import add_demonstrations, clone_behaviour, warm_up_critic
 from codesign_mb.stages.sac_from_demos import (
     ActorWarmup,
@@ -62,6 +57,7 @@ from codesign_mb.stages.stage_a_aids import (
     EstimatedStateEnv,
     Shaping,
     curriculum_schedule,
+    evaluate_ideal,
     speed_at,
 )
 from codesign_mb.stages.training import (
@@ -79,7 +75,7 @@ from codesign_mb.stages.training import (
     write_output,
 )
 
-__all__ = ["StageAConfig", "evaluate_ideal", "train_stage_a"]
+__all__ = ["StageAConfig", "train_stage_a"]
 
 
 @dataclass(frozen=True)
@@ -224,36 +220,6 @@ class StageAConfig:
         require_at_least(self, 1, "final_eval_episodes", cap=EPISODES_CAP)
         if self.bc_action_std <= 0:
             raise ValueError(f"bc_action_std must be > 0, got {self.bc_action_std}")
-
-
-def evaluate_ideal(
-    plant: PlantSpec,
-    controller: Controller,
-    *,
-    seeds: Sequence[int],
-    estimator: ComponentSpec | None = None,
-) -> dict[str, float]:
-    """Success rate and mean return of ``controller`` behind a perfect link, one episode a seed.
-
-    Each episode is :func:`~codesign_mb.rollout.rollout` behind a perfect link (``q = 1``,
-    ``tau = 0``: the tables' ``oracle``) with ``estimator`` (``None``: ideal control, the
-    controller sees the plant's observation with the true remote state).
-    """
-    if not seeds:
-        return {}
-    base = make_plant(plant)
-    env = LinkObservationWrapper(base, BernoulliLink(), StaticQos(1.0, 0))
-    est = None if estimator is None else build("estimator", estimator, base)
-    successes, returns = [], []
-    for s in seeds:
-        table = rollout(env, est, controller, seed=s)
-        successes.append("success" in table and bool(table["success"].any()))
-        total = 0.0
-        for reward in table["reward"]:  # summed in step order, as SAC's episode return
-            total += float(reward)
-        returns.append(total)
-    env.close()
-    return {"success_rate": float(np.mean(successes)), "mean_return": float(np.mean(returns))}
 
 
 _NOTES = (

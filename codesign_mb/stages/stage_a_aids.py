@@ -3,12 +3,14 @@
 Plain SB3/gymnasium usage, no RL algorithm: the training env the actor acts in, the plant
 behind a perfect link with the stack's estimator (:class:`EstimatedStateEnv`, the ``oracle``
 link of the tables: what the robot knows with every packet delivered fresh), the shaped reward
-and the early-grip penalty (:class:`Shaping`), and the curriculum over belt speeds
-(:func:`curriculum_schedule` + :class:`Curriculum`).
+and the early-grip penalty (:class:`Shaping`), the curriculum over belt speeds
+(:func:`curriculum_schedule` + :class:`Curriculum`), and the evaluation behind that link
+(:func:`evaluate_ideal`).
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import replace
 from typing import Any
 
@@ -17,15 +19,18 @@ import numpy as np
 from stable_baselines3.common.callbacks import BaseCallback
 
 from codesign_mb.adaptation.base import StaticQos
+from codesign_mb.control.base import Controller
 from codesign_mb.core.registry import ComponentSpec, PlantSpec, build, make_plant
 from codesign_mb.network.link import BernoulliLink
 from codesign_mb.network.wrapper import LinkObservationWrapper
+from codesign_mb.rollout.loop import rollout
 
 __all__ = [
     "Curriculum",
     "EstimatedStateEnv",
     "Shaping",
     "curriculum_schedule",
+    "evaluate_ideal",
     "plant_at_speed",
     "speed_at",
 ]
@@ -170,3 +175,33 @@ class Shaping(gym.Wrapper):
         bonus -= self.grip_penalty * closing_far
         self._distance = distance
         return obs, float(reward) + bonus, terminated, truncated, info
+
+
+def evaluate_ideal(
+    plant: PlantSpec,
+    controller: Controller,
+    *,
+    seeds: Sequence[int],
+    estimator: ComponentSpec | None = None,
+) -> dict[str, float]:
+    """Success rate and mean return of ``controller`` behind a perfect link, one episode a seed.
+
+    Each episode is :func:`~codesign_mb.rollout.rollout` behind a perfect link (``q = 1``,
+    ``tau = 0``: the tables' ``oracle``) with ``estimator`` (``None``: ideal control, the
+    controller sees the plant's observation with the true remote state).
+    """
+    if not seeds:
+        return {}
+    base = make_plant(plant)
+    env = LinkObservationWrapper(base, BernoulliLink(), StaticQos(1.0, 0))
+    est = None if estimator is None else build("estimator", estimator, base)
+    successes, returns = [], []
+    for s in seeds:
+        table = rollout(env, est, controller, seed=s)
+        successes.append("success" in table and bool(table["success"].any()))
+        total = 0.0
+        for reward in table["reward"]:  # summed in step order, as SAC's episode return
+            total += float(reward)
+        returns.append(total)
+    env.close()
+    return {"success_rate": float(np.mean(successes)), "mean_return": float(np.mean(returns))}
