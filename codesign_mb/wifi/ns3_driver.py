@@ -124,12 +124,6 @@ std::vector<int64_t> RunScenario(uint32_t nSta, uint32_t mcs, uint32_t widthMhz,
   wifi.SetRemoteStationManager("ns3::ConstantRateWifiManager", "DataMode",
                                StringValue(dataMode.str()), "ControlMode",
                                StringValue(ctrlMode.str()));
-  if (rtsThreshold >= 0) {  // RTS/CTS before every PSDU longer than the threshold
-    wifi.SetRemoteStationManager("ns3::ConstantRateWifiManager", "DataMode",
-                                 StringValue(dataMode.str()), "ControlMode",
-                                 StringValue(ctrlMode.str()), "RtsCtsThreshold",
-                                 UintegerValue(static_cast<uint32_t>(rtsThreshold)));
-  }
   wifi.ConfigHeOptions("GuardInterval", TimeValue(NanoSeconds(giNs)));
   WifiMacHelper mac;
   Ssid ssid("codesign-xc");
@@ -153,6 +147,14 @@ std::vector<int64_t> RunScenario(uint32_t nSta, uint32_t mcs, uint32_t widthMhz,
   mac.SetType("ns3::ApWifiMac", "Ssid", SsidValue(ssid), "EnableBeaconJitter",
               BooleanValue(false));
   NetDeviceContainer apDev = wifi.Install(phy, mac, apNode);
+  if (rtsThreshold >= 0) {  // RTS/CTS before every PSDU longer than the threshold
+    for (const auto& devices : {staDev, apDev}) {
+      for (uint32_t i = 0; i < devices.GetN(); ++i) {
+        DynamicCast<WifiNetDevice>(devices.Get(i))->GetRemoteStationManager()->SetAttribute(
+            "RtsCtsThreshold", UintegerValue(static_cast<uint32_t>(rtsThreshold)));
+      }
+    }
+  }
   if (apBeTxopUs > 0) {
     // The AP's own AC_BE TXOP limit (its dot11QAPEDCATable entry); the EDCA Parameter Set
     // it advertises keeps 0 for the stations.
