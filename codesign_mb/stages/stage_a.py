@@ -44,7 +44,7 @@ from stable_baselines3 import SAC
 from stable_baselines3.common.buffers import ReplayBuffer
 
 from codesign_mb.control.sac import SacController
-from codesign_mb.core.config import EPISODES_CAP, TRAINING_STEPS_CAP
+from codesign_mb.core.config import EPISODES_CAP, TRAINING_STEPS_CAP, check_range
 from codesign_mb.core.registry import ComponentSpec, PlantSpec, build
 from codesign_mb.stages.demonstrations import add_demonstrations, clone_behaviour, warm_up_critic
 from codesign_mb.stages.sac_from_demos import (
@@ -190,8 +190,7 @@ class StageAConfig:
     def __post_init__(self) -> None:
         require_at_least(self, 1, "total_steps", "chunk_steps", cap=TRAINING_STEPS_CAP)
         require_at_least(self, 0, "eval_episodes", "demo_episodes", cap=EPISODES_CAP)
-        if not 1 <= self.n_critics <= 16:
-            raise ValueError(f"n_critics must be in [1, 16], got {self.n_critics}")
+        check_range("n_critics", self.n_critics, ge=1, le=16)
         require_at_least(
             self,
             0,
@@ -264,16 +263,20 @@ def train_stage_a(
     assert state is not None
     state.total_steps = config.total_steps
     bc_term = _bc_term(config, model, work_dir)
-    warmup = ActorWarmup(
-        model, freeze_steps=config.actor_freeze_steps, ramp_steps=config.actor_ramp_steps
+    warmup = (  # a hook on every actor step only when it changes the rate
+        ActorWarmup(
+            model, freeze_steps=config.actor_freeze_steps, ramp_steps=config.actor_ramp_steps
+        )
+        if config.actor_freeze_steps or config.actor_ramp_steps
+        else None
     )
     if "setup_wall_time_s" not in state.extra:  # demonstrations, cloning, critic warm-up
         state.extra["setup_wall_time_s"] = round(time.perf_counter() - launched, 1)
     started = time.perf_counter()
     _learn(config, model, state, work_dir=work_dir, schedule=schedule, progress=progress)
-    if bc_term is not None:
-        bc_term.remove()
-    warmup.remove()
+    for hook in (bc_term, warmup):
+        if hook is not None:
+            hook.remove()
     model = _shipped(config, model, work_dir)
     final = _final_evaluation(config, model, work_dir)
     state.extra["session_wall_time_s"] = round(time.perf_counter() - started, 1)
@@ -438,7 +441,7 @@ def _learn(
         callback=Curriculum(schedule) if schedule else None,
         progress=progress,
         description="stage A (SAC, ideal control)",
-        keep_best=(lambda point: _sac_score(point)) if config.eval_episodes else None,
+        keep_best=_sac_score if config.eval_episodes else None,
     )
 
 
