@@ -238,14 +238,16 @@ def test_uplink_ppdu_counts_only_the_scheduled_stations():
     mac, phy = CELL.mac, CELL.phy
     # tick 0: a beacon, then a BSRP poll of the 6 stations (52-tone RUs, 7 symbols of QoS Null)
     bsrp = mac.bsrp_exchange_us(6, mac.data_symbols(38, 48, 1.0), phy)
-    n_sym = mac.ul_data_symbols(1, bsrp, phy)
-    assert n_sym > mac.ul_data_symbols(6, bsrp, phy)
+    # the UL TB PPDU gets what the beacon (with its own access) and the poll leave of the tick
+    n_sym = mac.ul_data_symbols(1, mac.beacon_us + bsrp, phy)
+    assert n_sym > mac.ul_data_symbols(6, mac.beacon_us + bsrp, phy)
     # SERVICE + tail bits, and the dynamic fragment of the MPDU the A-MPDU ends in (38 B)
     assert frames[0].ul_bits - frames[0].ul_left == pytest.approx(468 * n_sym - 22 - 8 * 38)
     assert all(f.ul_left == f.ul_bits for f in frames[1:])
     ul = mac.ul_overhead_us(1, phy) + n_sym * phy.ul_symbol_us
     expected = mac.beacon_us + bsrp + mac.channel_access_us + ul
     assert engine.busy_us == pytest.approx(expected)
+    assert mac.tick_us - phy.ul_symbol_us < engine.busy_us <= mac.tick_us
 
 
 def test_admission_control_keeps_convex_near_the_optimum_under_overload():

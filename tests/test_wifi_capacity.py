@@ -20,6 +20,7 @@ from codesign_mb.studies.fig_wifi import (
     capacity_ratios,
     capacity_table,
     run_capacity,
+    run_point,
 )
 from codesign_mb.studies.fig_wifi_figures import plot_capacity
 from codesign_mb.studies.table_rows import PLANNER_ROW, model_based_rows
@@ -282,3 +283,36 @@ def test_capacity_not_significantly_below_the_target_reads_the_wilson_upper_boun
     ratios = capacity_ratios(curves)
     assert set(ratios["measure"]) == {"mean", "interval"}
     assert (ratios["ratio"] == 1.0).all()
+
+
+def test_capacity_table_pools_the_counted_episodes_of_continuous_operation():
+    # trials whose robots ran 3 counted episodes each: N x 3 robot-episodes per trial
+    rows = [
+        {"channel": "paper", "scheduler": "convex", "pipeline": "codesign", "robots": 4,
+         "trial": k, "successes": s, "robot_episodes": 12, "success_rate": s / 12}
+        for k, s in enumerate((12, 11, 9))
+    ]  # fmt: skip
+    point = capacity_table(pd.DataFrame(rows)).iloc[0]
+    ci = binomtest(32, 36).proportion_ci(confidence_level=0.95, method="wilson")
+    assert (point["successes"], point["robot_episodes"]) == (32, 36)
+    assert point["success_ci_low"] == pytest.approx(ci.low, abs=1e-9)
+    assert point["success_ci_high"] == pytest.approx(ci.high, abs=1e-9)
+
+
+def test_run_point_counts_each_robots_episodes_after_the_warm_up():
+    cfg = CapacityConfig(
+        stack="toy",
+        robots=(3,),
+        channels=("paper",),
+        schedulers=("convex",),
+        trials=1,
+        episodes_per_robot=2,
+        warmup_episodes=1,
+    )
+    assert cfg.robot_episodes() == 2 * 3 * 3  # two pipelines, 3 robots, 3 episodes each
+    row = run_point(
+        cfg, channel_name="paper", scheduler="convex", pipeline_name="static", n_robots=3,
+        trial=0,
+    )  # fmt: skip
+    assert row["robot_episodes"] == 6
+    assert row["success_rate"] == pytest.approx(row["successes"] / 6)

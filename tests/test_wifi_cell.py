@@ -194,3 +194,47 @@ def test_trace_json_round_trip(tmp_path):
     bad["config"]["phy"]["bandwidth"] = 40
     with pytest.raises(ValueError, match="bandwidth"):
         Trace.from_json(bad)
+
+
+class UnevenDrift(Drift):
+    """:class:`Drift` whose episodes last 20-29 steps (drawn at reset): robots drift apart."""
+
+    def reset(self, *, seed=None, options=None):
+        out = super().reset(seed=seed, options=options)
+        self.horizon = 20 + int(self.np_random.integers(0, 10))
+        return out
+
+
+def test_continuous_operation_runs_episodes_back_to_back_on_one_channel():
+    channel = SharedChannel(CELL, 3)
+    envs, estimators, controllers = _robots(channel)
+    envs = [
+        LinkObservationWrapper(UnevenDrift(), link, StaticQos(1.0, 1)) for link in channel.links
+    ]
+    tables = rollout_shared(
+        envs, estimators, controllers, channel=channel, seed=5, episodes=2, warmup_episodes=1
+    )
+    summary, frames = channel.summary(), channel.trace().frames
+    drawn = []
+    for i, table in enumerate(tables):
+        # the two counted episodes, each as long as its own drawn horizon
+        lengths = table.groupby("episode").size()
+        assert list(lengths.index) == [0, 1] and lengths.between(20, 29).all()
+        drawn.extend(lengths)
+        # one frame per step on the channel's clock, never restarted: steps 0, 1, ... with
+        # no gap or repeat across the episodes (q = 1, every frame admitted)
+        steps = np.sort(frames.loc[frames["station"] == i, "step"].to_numpy())
+        assert np.array_equal(steps, np.arange(len(steps)))
+        assert len(steps) == summary["steps"][i] >= 3 * 21
+    # every episode its own seed: the horizons drawn differ
+    assert len(set(drawn)) > 1
+    # a robot done with its episodes keeps working until the last robot is: step counts
+    # differ by less than one episode
+    assert summary["steps"].max() - summary["steps"].min() <= 29 + 1
+    again = SharedChannel(CELL, 3)
+    envs2 = [LinkObservationWrapper(UnevenDrift(), link, StaticQos(1.0, 1)) for link in again.links]
+    tables2 = rollout_shared(
+        envs2, *_robots(again)[1:], channel=again, seed=5, episodes=2, warmup_episodes=1
+    )
+    for a, b in zip(tables, tables2, strict=True):
+        assert a.equals(b)

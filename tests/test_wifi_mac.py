@@ -28,16 +28,17 @@ def test_ap_sees_a_camera_frame_only_after_a_bsr():
     engine.run_tick(np.ones(1), np.ones(1))  # tick 0: beacon, poll of an empty queue
     frame = Frame(0, 0, 1, 40, 10_000, 848)
     engine.add(frame)
-    for _ in range(1, 5):  # ticks 1-4: the AP believes the queue empty, no poll is due
+    poll = CELL.mac.bsrp_interval_ticks
+    for _ in range(1, poll):  # the AP believes the queue empty until the next poll is due
         engine.run_tick(np.ones(1), np.ones(1))
         assert frame.ul_left == frame.ul_bits
-    engine.run_tick(np.ones(1), np.ones(1))  # tick 5: BSRP poll, then the basic Trigger
+    engine.run_tick(np.ones(1), np.ones(1))  # tick `poll`: BSRP poll, then the basic Trigger
     assert frame.ul_left < frame.ul_bits
     mac, phy = CELL.mac, CELL.phy
     bsrp = mac.bsrp_exchange_us(1, mac.data_symbols(38, 468, 1.0), phy)
     n_sym = mac.ul_data_symbols(1, bsrp, phy)
     (tick, direction, layout) = engine.layouts[-1]
-    assert (tick, direction) == (5, "ul")
+    assert (tick, direction) == (poll, "ul")
     sd = engine.plan.units[int(layout[0])].data_subcarriers
     # SERVICE + tail bits, and a dynamic fragment: one more MAC header, FCS and delimiter
     assert frame.ul_bits - frame.ul_left == pytest.approx(sd * n_sym - 22 - 8 * 38)
@@ -45,7 +46,7 @@ def test_ap_sees_a_camera_frame_only_after_a_bsr():
 
 def test_a_station_with_data_reports_new_frames_without_a_poll():
     engine = _engine(1)
-    first = Frame(0, 0, 0, 40, 60_000, 848)  # longer than one tick
+    first = Frame(0, 0, 0, 40, 50_000, 848)  # longer than one tick
     engine.add(first)
     engine.run_tick(np.ones(1), np.ones(1))  # polled at tick 0, served, BSR with its data
     second = Frame(0, 1, 1, 41, 1_000, 848)
@@ -60,7 +61,7 @@ def test_a_station_with_data_reports_new_frames_without_a_poll():
     # the BSR sent with tick-1 data reported the second frame: it is served without a poll
     engine.run_tick(np.ones(1), np.ones(1))
     assert before == second.ul_bits and second.ul_left < second.ul_bits
-    assert engine.tick % CELL.mac.bsrp_interval_ticks != 0 or engine.tick > 5
+    assert engine.tick % CELL.mac.bsrp_interval_ticks != 0 or engine.tick > 8
 
 
 def test_one_dl_mu_ppdu_carries_every_ready_state_frame():
@@ -81,8 +82,35 @@ def test_one_dl_mu_ppdu_carries_every_ready_state_frame():
     assert engine.busy_us == pytest.approx(expected)
 
 
+def test_busy_ticks_share_a_txop_up_to_its_limit():
+    # one long frame at MCS 7, polled at tick 0: ticks 0-3 form one TXOP (access once, then a
+    # SIFS before each tick's exchanges), tick 4 contends again (4096 us limit)
+    mac, phy = CELL.mac, CELL.phy
+    engine = _engine(1)
+    engine.layouts = []
+    frame = Frame(0, 0, 0, 7, 2_000_000, 848)  # due soon: the whole band every tick
+    engine.add(frame)
+    served, before = [], frame.ul_left
+    for _ in range(6):
+        engine.run_tick(np.full(1, 5.0), np.full(1, 5.0))
+        served.append(before - frame.ul_left)
+        before = frame.ul_left
+    bsrp = mac.bsrp_exchange_us(1, mac.data_symbols(38, 468, 5.0), phy)
+    fresh = mac.ul_data_symbols(1, 0.0, phy)
+    inside = mac.ul_data_symbols(1, 0.0, phy, continues_txop=True)
+    # tick 0 carries a beacon (its own access, then the AP contends anew) and the poll
+    # (beacon_us already counts its access, so the UL gets what the tick leaves after both)
+    first = mac.ul_data_symbols(1, bsrp + mac.beacon_us, phy)
+    per_symbol = 468 * 5.0
+    expected = [first, inside, inside, inside, fresh, inside]
+    assert inside - fresh == math.floor(828 / 14.4) - math.floor(778.5 / 14.4)
+    # each tick ends inside the frame: SERVICE + tail, and a dynamic fragment's header + FCS +
+    # delimiter (38 B)
+    assert served == pytest.approx([n * per_symbol - 22 - 8 * 38 for n in expected])
+
+
 def test_bsrp_interval_trades_airtime_for_delay():
-    # polling every tick costs capacity against polling every 5 ticks (staggered, MCS 7)
+    # polling every tick costs capacity against polling every 8 ticks (staggered, MCS 7)
     base = CrosscheckConfig()
     every_tick = WifiConfig(
         phy=CELL.phy,
@@ -104,6 +132,21 @@ def test_capacity_search_finds_the_threshold():
             cap, seen = capacity(f, 64, guess=guess)
             assert cap == true_cap
             assert len(seen) <= 16
+
+
+def test_capacity_search_starts_from_known_fractions():
+    # an earlier run's fractions bracket the capacity: only the counts between are evaluated
+    calls: list[int] = []
+
+    def f(n: int) -> float:
+        calls.append(n)
+        return 1.0 if n <= 13 else 0.5
+
+    known = {10: 1.0, 12: 1.0, 16: 0.5, 20: 0.4}
+    cap, seen = capacity(f, 64, guess=40, known=known)
+    assert cap == 13
+    assert set(calls) <= {13, 14, 15} and 40 not in seen
+    assert all(seen[n] == v for n, v in known.items())
 
 
 def test_our_capacity_falls_with_the_mcs():

@@ -97,7 +97,14 @@ def test_airtime_parts():
     assert mac.dl_exchange_us(1, 1, 1, phy) == pytest.approx(68.8 + 16 + 66.4 + 16)
     # UL: 1000 - 65.5 - (trigger 36 + 16 + TB preamble 52 + 16 + M-BA 36) = 778.5 us of data
     assert mac.ul_data_symbols(1, 0.0, phy) == math.floor(778.5 / 14.4)
-    assert mac.max_ul_data_symbols(phy, with_dl=False) == 54
+    # a tick inside a TXOP starts after a SIFS: 1000 - 16 - 156 = 828 us, the LP's bound
+    assert mac.ul_data_symbols(1, 0.0, phy, continues_txop=True) == math.floor(828 / 14.4)
+    assert mac.max_ul_data_symbols(phy, with_dl=False) == 57
+    # AC_VI TXOP limit 4096 us from the end of the first access (65.5 us): ticks ending by
+    # 4161.5 us share it, so 4; with the 2016 limit (3008 us) 3, without a limit 1
+    assert mac.txop_ticks == 4
+    assert MacTiming(txop_limit_us=3008.0).txop_ticks == 3
+    assert MacTiming(txop_limit_us=0.0).txop_ticks == 1
     assert mac.ul_data_symbols(18, 0.0, phy) < mac.ul_data_symbols(1, 0.0, phy)
     parts = mac.breakdown(6, 6, phy)
     total = parts["channel_access_us"] + parts["dl_exchange_us"] + parts["ul_overhead_us"]

@@ -326,6 +326,8 @@ class SharedChannelLike(Protocol):
 
     def close(self, station: int) -> None: ...
 
+    def rejoin(self, station: int) -> None: ...
+
 
 def rollout_shared(
     envs: Sequence[LinkObservationWrapper],
@@ -335,21 +337,38 @@ def rollout_shared(
     channel: SharedChannelLike,
     seed: int,
     max_steps: int | None = None,
+    episodes: int = 1,
+    warmup_episodes: int = 0,
 ) -> list[pd.DataFrame]:
     """Run N robots in lockstep on one channel; one per-step table per robot (like ``rollout``).
 
     ``envs[i]`` must be a :class:`~codesign_mb.network.LinkObservationWrapper` around robot
     ``i``'s plant whose link is ``channel.links[i]``. Robots are stepped in
-    ``channel.step_order``; a robot whose episode ends leaves the channel.
+    ``channel.step_order``.
+
+    One episode each (the default): a robot whose episode ends leaves the channel;
+    ``max_steps`` caps the steps. Continuous operation (``warmup_episodes + episodes > 1``):
+    a robot whose episode ends starts its next one at its next step
+    (:meth:`~codesign_mb.wifi.cell.SharedChannel.rejoin`), so the robots' phases drift apart
+    as in a running cell; its first ``warmup_episodes`` (begun in step with the others) are
+    not returned, then ``episodes`` are; a robot done with those keeps working (episodes not
+    returned) until every robot is, so the channel carries N robots throughout. ``max_steps``
+    then caps each episode. The tables get an ``episode`` column (counted from 0 after the
+    warm-up).
 
     Seeds: the channel is reset with ``seed``; robot ``i`` gets the ``i``-th stream spawned
-    from it (env, link drops and QoS policy, via the wrapper; controller).
+    from it (env, link drops and QoS policy, via the wrapper; controller), its later episodes
+    seeds spawned from that stream.
     """
     n = channel.n
     if not (len(envs) == len(estimators) == len(controllers) == n):
         raise ValueError(
             f"need one env, estimator and controller per station ({n}), got "
             f"{len(envs)}, {len(estimators)}, {len(controllers)}"
+        )
+    if episodes < 1 or warmup_episodes < 0:
+        raise ValueError(
+            f"need episodes >= 1 and warmup_episodes >= 0, got {episodes}, {warmup_episodes}"
         )
     for i, env in enumerate(envs):
         if getattr(env, "link", None) is not channel.links[i]:
@@ -359,15 +378,50 @@ def rollout_shared(
     loops = [ClosedLoop(e, s, c) for e, s, c in zip(envs, estimators, controllers, strict=True)]
     for i in channel.step_order:
         loops[i].reset(seed=int(robot_ss[i].generate_state(1)[0]))
-    t = 0
-    while not all(loop.done for loop in loops) and (max_steps is None or t < max_steps):
+    if warmup_episodes + episodes == 1:
+        t = 0
+        while not all(loop.done for loop in loops) and (max_steps is None or t < max_steps):
+            for i in channel.step_order:
+                if not loops[i].done:
+                    loops[i].step()
+                    if loops[i].done:
+                        channel.close(i)
+            t += 1
+        tables = [loop.table() for loop in loops]
+        for i, table in enumerate(tables):
+            table.insert(min(1, len(table.columns)), "robot", i)
+        return tables
+    return _continuous(loops, channel, robot_ss, max_steps, episodes, warmup_episodes)
+
+
+def _continuous(
+    loops: list[ClosedLoop],
+    channel: SharedChannelLike,
+    robot_ss: list[np.random.SeedSequence],
+    max_steps: int | None,
+    episodes: int,
+    warmup: int,
+) -> list[pd.DataFrame]:
+    """:func:`rollout_shared`'s continuous operation: episodes back to back per robot."""
+    n = len(loops)
+    finished = [0] * n  # episodes ended, per robot
+    kept: list[list[pd.DataFrame]] = [[] for _ in range(n)]
+    while min(finished) < warmup + episodes:
         for i in channel.step_order:
-            if not loops[i].done:
-                loops[i].step()
-                if loops[i].done:
-                    channel.close(i)
-        t += 1
-    tables = [loop.table() for loop in loops]
-    for i, table in enumerate(tables):
-        table.insert(min(1, len(table.columns)), "robot", i)
-    return tables
+            loop = loops[i]
+            if loop.done:  # ended last round: this round's step is the next episode's first
+                channel.rejoin(i)
+                loop.reset(seed=int(robot_ss[i].spawn(1)[0].generate_state(1)[0]))
+                continue
+            loop.step()
+            if max_steps is not None and loop.t >= max_steps:
+                loop.done = True
+            if not loop.done:
+                continue
+            if warmup <= finished[i] < warmup + episodes:
+                table = loop.table()
+                table.insert(min(1, len(table.columns)), "robot", i)
+                table.insert(2, "episode", finished[i] - warmup)
+                kept[i].append(table)
+            finished[i] += 1
+    return [pd.concat(tables, ignore_index=True) for tables in kept]

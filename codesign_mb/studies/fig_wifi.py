@@ -82,11 +82,14 @@ def run_point(
     n_robots: int,
     trial: int,
 ) -> dict[str, Any]:
-    """One trial of one point: N robots, one episode; returns success and network figures.
+    """One trial of one point: N robots, one episode each or back to back (continuous
+    operation, ``config.episodes_per_robot``); returns success and network figures.
 
-    ``successes`` is the number of robots whose task succeeded, ``success_rate`` their
-    fraction; ``delivered_fraction`` the steps whose state arrived in time, over every
-    robot's steps. With an MPC, ``mpc_failures`` is its failed solves summed over the robots.
+    ``successes`` is the number of counted robot-episodes whose task succeeded
+    (``robot_episodes`` of them), ``success_rate`` their fraction; ``mean_reliability`` and
+    ``delivered_fraction`` (the steps whose state arrived in time) are over every robot's
+    steps of the trial, warm-up included. With an MPC, ``mpc_failures`` is its failed solves
+    summed over the robots.
     """
 
     pipeline = config.pipelines[pipeline_name]
@@ -100,11 +103,18 @@ def run_point(
         controllers.append(_build("controller", pipeline.controller, plant))
     seed = int(np.random.SeedSequence([config.seed, trial]).generate_state(1)[0])
     tables = rollout_shared(
-        envs, estimators, controllers, channel=channel, seed=seed, max_steps=config.max_steps
+        envs,
+        estimators,
+        controllers,
+        channel=channel,
+        seed=seed,
+        max_steps=config.max_steps,
+        episodes=config.episodes_per_robot,
+        warmup_episodes=config.warmup_episodes,
     )
     for env in envs:
         env.close()
-    successes = [bool(t["success"].any()) if "success" in t else False for t in tables]
+    successes = [ok for t in tables for ok in _episode_successes(t)]
     summary = channel.summary()
     ages = [float(t["age"].mean()) for t in tables if len(t)]
     row = {
@@ -114,6 +124,7 @@ def run_point(
         "robots": n_robots,
         "trial": trial,
         "successes": int(sum(successes)),
+        "robot_episodes": len(successes),
         "success_rate": float(np.mean(successes)),
         "mean_reliability": float(np.nanmean(summary["mean_reliability"])),
         "delivered_fraction": float(summary["delivered"].sum() / max(summary["steps"].sum(), 1)),
@@ -131,6 +142,15 @@ def run_point(
     if failures:  # an MPC: its failed solves, summed over the robots
         row["mpc_failures"] = int(sum(failures))
     return row
+
+
+def _episode_successes(table: pd.DataFrame) -> list[bool]:
+    """Whether each episode of a robot's table succeeded (``info["success"]`` at any step)."""
+    if "episode" not in table:
+        return [bool(table["success"].any()) if "success" in table else False]
+    if "success" not in table:
+        return [False] * int(table["episode"].nunique())
+    return [bool(v) for v in table.groupby("episode", sort=True)["success"].any()]
 
 
 def _episode_metrics(component: Any) -> dict[str, Any]:
@@ -171,7 +191,12 @@ def run_capacity(
     group, items = "", [""] * len(points)
     if store is not None:
         group = digest(
-            {"trials of": config.plant, "seed": config.seed, "max_steps": config.max_steps}
+            {
+                "trials of": config.plant,
+                "seed": config.seed,
+                "max_steps": config.max_steps,
+                **_continuous_key(config),
+            }
         )
         items = [_point_key(config, point) for point in points]
         kept = store.take(group, items)
@@ -203,6 +228,13 @@ def run_capacity(
     for _ in progress(finished()) if progress is not None else finished():
         pass
     return pd.DataFrame([_row(rows, k) for k in sorted(ran)])
+
+
+def _continuous_key(config: CapacityConfig) -> dict[str, int]:
+    """Continuous operation's settings, in the record key only when on (older keys hold)."""
+    if config.episodes_per_robot == 1 and config.warmup_episodes == 0:
+        return {}
+    return {"episodes": config.episodes_per_robot, "warmup": config.warmup_episodes}
 
 
 def _row(rows: list[dict[str, Any] | None], k: int) -> dict[str, Any]:
@@ -276,7 +308,8 @@ def capacity_table(
     )
     if "successes" not in results:
         results = results.assign(successes=(results["success_rate"] * results["robots"]).round())
-    results = results.assign(robot_episodes=results["robots"])
+    if "robot_episodes" not in results:  # one episode per robot (rows of older runs)
+        results = results.assign(robot_episodes=results["robots"])
     sums = {c: (c, _sum_or_nan) for c in ("mpc_failures", "allocator_fallbacks") if c in results}
     curves = (
         results.groupby(keys, as_index=False)

@@ -53,11 +53,13 @@ Chosen here (the paper does not give them):
     links (a factory hall's delay spread), and the Trigger and multi-STA BlockAck frames at
     the 6 Mb/s basic rate. One camera frame then takes about 5.5 ms of the whole channel and
     its state frame's DL exchange about 0.4 ms more, so about 6 robots at ``q = 1`` fill the
-    40 ms period (the greedy scheduler delivers every frame to 6 robots, 80 % to 7, 15 % to
-    8). No fading (Rician ``K = inf``) and :class:`~codesign_mb.wifi.channel.ChannelConfig`'s
-    link budget (TGax indoor path loss at 5.5 GHz with 10 dB of walls and clutter, AP 20 dBm,
-    stations 17 dBm, noise figure 7 dB, robots 5-30 m from the AP): MCS 1 then delivers
-    99.4-100 % of the frames, so the cell's limit is airtime, not loss.
+    40 ms period (every frame requested, staggered captures, no loss: the greedy scheduler
+    delivers every frame to 6 robots, 57 % to 7, none to 8; the convex one 100, 95 and 78 %;
+    :func:`~codesign_mb.wifi.crosscheck.ours_delivered_fraction`, 8 periods). No fading
+    (Rician ``K = inf``) and :class:`~codesign_mb.wifi.channel.ChannelConfig`'s link budget
+    (TGax indoor path loss at 5.5 GHz with 10 dB of walls and clutter, AP 20 dBm, stations
+    17 dBm, noise figure 7 dB, robots 5-30 m from the AP): MCS 1 then delivers 99.4-100 % of
+    the frames, so the cell's limit is airtime, not loss.
 ``"better"``
     What a well-planned cell gives: link adaptation (MCS 0-11, the highest whose delivery
     reaches ``sqrt(0.95)`` per hop), the default 0.8 us (DL) and 1.6 us (UL) guard intervals,
@@ -260,6 +262,14 @@ class CapacityConfig:
         Episodes (trials of N robots) per point.
     max_steps:
         Episode length cap in control steps (``None``: the plant's horizon).
+    episodes_per_robot, warmup_episodes:
+        Continuous operation (:func:`~codesign_mb.rollout.rollout_shared`): each robot of a
+        trial runs ``warmup_episodes`` uncounted episodes, then ``episodes_per_robot``
+        counted ones, back to back, and keeps working until every robot is done, so the
+        channel always carries N robots whose pick cycles drift apart as in a running cell.
+        ``1, 0`` (one episode, begun together; a robot leaves when done) is the old protocol,
+        which synchronises the robots' phases: every robot's object arrives within the same
+        few steps, a burst of requests no running cell sees.
     success_target:
         Success rate that defines a curve's capacity.
     stop_below:
@@ -282,6 +292,8 @@ class CapacityConfig:
     scenario: str = ""
     trials: int = 4
     max_steps: int | None = None
+    episodes_per_robot: int = 1
+    warmup_episodes: int = 0
     success_target: float = 0.95
     stop_below: float = 0.0
     seed: int = 0
@@ -338,10 +350,12 @@ class CapacityConfig:
         if not isinstance(plant, PlantSpec):
             raise ValueError(f"plant must be a table (name, options), got {plant!r}")
         object.__setattr__(self, "plant", plant)
-        for name in ("trials", "workers"):
+        for name in ("trials", "workers", "episodes_per_robot"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
+        check_range("warmup_episodes", self.warmup_episodes, ge=0, cap=EPISODES_CAP)
+        check_range("episodes_per_robot", self.episodes_per_robot, cap=EPISODES_CAP)
         if self.max_steps is not None and self.max_steps < 1:
             raise ValueError(f"max_steps must be >= 1 or None, got {self.max_steps!r}")
         if not 0.0 < self.success_target <= 1.0:
@@ -373,9 +387,11 @@ class CapacityConfig:
         return self.robots_by_channel.get(channel, self.robots)
 
     def robot_episodes(self) -> int:
-        """Robot-episodes of the whole sweep (a trial at N robots is N): the cost with no
-        early stop, so at most the cost with one."""
-        return sum(point["n_robots"] for point in self.points())
+        """Robot-episodes of the whole sweep (a trial at N robots is N per episode, warm-up
+        included): the cost with no early stop (with continuous operation, a few more: the
+        robots that finish first keep working until the last does)."""
+        per_robot = self.warmup_episodes + self.episodes_per_robot
+        return per_robot * sum(point["n_robots"] for point in self.points())
 
     def points(self) -> list[dict[str, Any]]:
         """Every (channel, scheduler, pipeline, robots, trial) of the sweep, in grid order."""

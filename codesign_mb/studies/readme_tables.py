@@ -383,13 +383,18 @@ def fig_wifi_section(study: Study, figures_url: str) -> str:
                 + "; ".join(
                     f"{r['scheduler']}{_MEASURES.get(str(r.get('measure', 'mean')), '')} "
                     f"{r['codesign_capacity']} / {r['static_capacity']} = "
-                    f"{_g(round(float(r['ratio']), 2))} ({r['bound']})"
+                    f"{_ratio(r['ratio'])} ({r['bound']})"
                     for r in ratios
                 )
                 + "."
             )
     parts.append(_figures(study, figures_url))
     return _paragraphs(*parts)
+
+
+def _ratio(value: Any) -> str:
+    """A capacity ratio, or why there is none (a static capacity of 0)."""
+    return "undefined" if value is None else _g(round(float(value), 2))
 
 
 _MEASURES = {"mean": "", "interval": " (not significantly below the target, Wilson)"}

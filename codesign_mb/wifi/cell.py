@@ -117,11 +117,17 @@ class _TraceRecorder:
 
 @dataclass
 class _Station:
-    """One robot in the cell: its step, frame-dropping stream, observation buffer, tallies."""
+    """One robot in the cell: its step, frame-dropping stream, observation buffer, tallies.
+
+    ``t`` is the step of the robot's current episode, which began at the channel's step
+    ``origin`` (0 but after :meth:`SharedChannel.rejoin`); the tallies run over every episode
+    since the channel's reset.
+    """
 
     rng: np.random.Generator
     buffer: ObservationBuffer
     t: int = 0
+    origin: int = 0
     active: bool = True
     requested: float = 0.0
     admitted: int = 0
@@ -130,7 +136,7 @@ class _Station:
     def restart(self, rng: np.random.Generator, buffer: ObservationBuffer) -> None:
         """Start a new episode with these stream and buffer."""
         self.rng, self.buffer = rng, buffer
-        self.t, self.active, self.requested, self.admitted, self.steps = 0, True, 0.0, 0, 0
+        self.t, self.active = 0, True
 
 
 class SharedChannel:
@@ -215,8 +221,26 @@ class SharedChannel:
         return self.engine.tick > 0 or any(s.t > 0 for s in self._stations)
 
     def capture_tick(self, station: int, step: int) -> int:
-        """``c_i(t)``: the tick robot ``station`` captures (and reads) step ``step``."""
+        """``c_i(t)``: the tick robot ``station`` captures (and reads) step ``step``.
+
+        ``step`` counts from the start of the robot's current episode.
+        """
+        step += self._stations[station].origin
         return step * self.period_ticks + int(self.offsets[station])
+
+    def rejoin(self, station: int) -> None:
+        """Robot ``station`` starts its next episode at its next step, the others going on.
+
+        Continuous operation (a robot picks one object after another): its queued frames are
+        dropped, its step count restarts from 0 at the channel's current step for it; the
+        link's :meth:`WifiLink.reset` then gives it a new buffer (and stream) without
+        restarting the channel.
+        """
+        st = self._stations[station]
+        self.engine.drop_station(station)
+        self.engine.delivered[station].clear()
+        st.origin += st.t
+        st.t, st.active = 0, True
 
     # ------------------------------------------------------------------ time
     def _advance_to(self, tick: int, station: int) -> None:
@@ -263,7 +287,16 @@ class SharedChannel:
             self.engine.add(frame)
             self._frames.append(frame)
             self._recorder.frames.append(
-                (station, t, cap, deadline, self.ul_bits, self.dl_bits, int(ul_ok), int(dl_ok))
+                (
+                    station,
+                    st.origin + t,
+                    cap,
+                    deadline,
+                    self.ul_bits,
+                    self.dl_bits,
+                    int(ul_ok),
+                    int(dl_ok),
+                )
             )
             st.admitted += 1
         buffer = st.buffer
@@ -335,6 +368,9 @@ class WifiLink:
 
     def reset(self, *, seed: int | None = None, prior: ArrayLike | None = None) -> None:
         """Start this robot's episode; restarts the channel if this robot had already stepped.
+
+        After :meth:`SharedChannel.rejoin` the robot is at step 0 again: only its buffer (and,
+        with a ``seed``, its stream) is renewed, the channel goes on.
 
         With a ``seed``, the station's frame-dropping stream is re-seeded with it, and so is the
         channel of a single-station cell: a single-robot episode is reproducible from its seed.

@@ -176,7 +176,8 @@ class ChannelEngine:
         self.delivered: list[list[Frame]] = [[] for _ in range(n_stations)]
         self.stats = _Stats(n_stations)
         self.busy_us = 0.0
-        self._airtime_cache: dict[tuple[int, float], int] = {}
+        self._airtime_cache: dict[tuple[int, float, bool], int] = {}
+        self._txop_ticks_left = 0  # later ticks the current TXOP still covers
         self.ul_symbol_us = config.phy.ul_symbol_us
         # last tick whose queue each station reported to the AP (BSR); -1: never
         self._reported = np.full(n_stations, -1, dtype=np.int64)
@@ -290,12 +291,18 @@ class ChannelEngine:
 
     # ------------------------------------------------------------------ one tick
     def run_tick(self, ul_bpss: NDArray, dl_bpss: NDArray) -> None:
-        """Advance one tick with the stations' bits per subcarrier-symbol for UL and DL."""
+        """Advance one tick with the stations' bits per subcarrier-symbol for UL and DL.
+
+        The tick opens a TXOP with the channel access, or continues the previous tick's with a
+        SIFS when that tick's UL TB PPDU ran to its end and the TXOP limit covers this tick
+        (:attr:`~codesign_mb.wifi.mac.MacTiming.txop_ticks`); a beacon or an idle tick ends it.
+        """
         k = self.tick
         mac = self.config.mac
         beacon = mac.beacon_us if mac.beacon_due(k) else 0.0
         if not any(self.ul_q) and not any(self.dl_q):  # an idle tick
             self.busy_us += beacon
+            self._txop_ticks_left = 0
             self.tick = k + 1
             return
         for queues, reserve in ((self.ul_q, self.dl_reserve_ticks), (self.dl_q, 0)):
@@ -304,13 +311,20 @@ class ChannelEngine:
                     for f in [f for f in q if f.deadline_tick - reserve <= k]:
                         q.remove(f)
                         self._finish(f, "late", k)
+        continues = self._txop_ticks_left > 0 and not beacon
         busy = beacon + self._poll(k, ul_bpss)
         dl_ready = [i for i, q in enumerate(self.dl_q) if any(f.dl_ready_tick <= k for f in q)]
         if dl_ready:
             busy += self._downlink(k, dl_ready, dl_bpss)
-        busy += self._uplink(k, ul_bpss, busy - beacon)
+        ul_us = self._uplink(k, ul_bpss, busy, continues)  # the beacon's airtime included
+        busy += ul_us
         if busy > beacon:
-            busy += mac.channel_access_us
+            busy += mac.access_us(continues)
+        # a UL TB PPDU fills the tick: the next tick may continue this TXOP (10.23.2.8)
+        if ul_us > 0:
+            self._txop_ticks_left = self._txop_ticks_left - 1 if continues else mac.txop_ticks - 1
+        else:
+            self._txop_ticks_left = 0
         self.busy_us += busy
         self.tick = k + 1
 
@@ -348,15 +362,18 @@ class ChannelEngine:
         )
         return mac.dl_exchange_us(len(users), n_sym, ack_sym, self.config.phy)
 
-    def _uplink(self, k: int, ul_bpss: NDArray, busy_us: float) -> float:
-        """The trigger-based UL exchange of tick ``k`` after ``busy_us`` of other exchanges."""
+    def _uplink(self, k: int, ul_bpss: NDArray, busy_us: float, continues: bool) -> float:
+        """The trigger-based UL exchange of tick ``k`` after ``busy_us`` of other exchanges.
+
+        ``continues``: the tick continues a TXOP (a SIFS instead of the channel access).
+        """
         n_ul = sum(1 for i in range(self.n) if self._known(i))
         if not n_ul:
             return 0.0
         # The allocator sizes RUs with the PPDU length it would get if every station with a
         # reported queue were triggered (a lower bound); the Trigger frame and the multi-STA
         # BlockAck then address the stations it scheduled, so the PPDU gets the symbols left.
-        n_sym = self._ul_symbols(min(n_ul, self._max_users), busy_us)
+        n_sym = self._ul_symbols(min(n_ul, self._max_users), busy_us, continues)
         if n_sym <= 0:
             return 0.0
         demand = self._demand(self.ul_q, True, k, ul_bpss * n_sym)
@@ -367,7 +384,7 @@ class ChannelEngine:
         n_sched = int(np.count_nonzero(layout >= 0))
         if not n_sched:
             return 0.0
-        n_sym = self._ul_symbols(n_sched, busy_us)
+        n_sym = self._ul_symbols(n_sched, busy_us, continues)
         self._serve(self.ul_q, True, k, layout, ul_bpss * n_sym)
         for i in np.flatnonzero(layout >= 0).tolist():
             self._reported[i] = k  # its A-MPDU carries a BSR (HE A-Control, 9.2.4.6a.4)
@@ -426,12 +443,14 @@ class ChannelEngine:
         ack = mac.data_symbols(mac.block_ack_bytes + mac.delimiter_bytes, sd, b)
         return min(mac.dl_data_symbols, need), ack
 
-    def _ul_symbols(self, n_users: int, busy_us: float) -> int:
-        """``MacTiming.ul_data_symbols``, cached by user count and busy time."""
-        key = (n_users, round(busy_us, 6))
+    def _ul_symbols(self, n_users: int, busy_us: float, continues: bool) -> int:
+        """``MacTiming.ul_data_symbols``, cached by user count, busy time and TXOP state."""
+        key = (n_users, round(busy_us, 6), continues)
         value = self._airtime_cache.get(key)
         if value is None:
-            value = self.config.mac.ul_data_symbols(n_users, busy_us, self.config.phy)
+            value = self.config.mac.ul_data_symbols(
+                n_users, busy_us, self.config.phy, continues_txop=continues
+            )
             self._airtime_cache[key] = value
         return value
 

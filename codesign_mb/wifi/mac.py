@@ -1,12 +1,16 @@
 """802.11ax MAC airtime of one schedule tick: the frame exchanges, their PPDUs and overheads.
 
-One tick is one TXOP of the AP, won by EDCA ([air_ul], [air_dl])::
+One tick is a sequence of frame exchanges of the AP ([air_ul], [air_dl])::
 
     access | [BSRP exchange] | [DL MU exchange] | [UL trigger-based exchange]
 
-- **access**: AIFS[AC] + mean backoff ``CWmin / 2`` slots (IEEE 802.11ax-2021 10.23.2). The
-  stations do not contend: they send only when triggered (their MU EDCA parameter set, 26.2.7,
-  is assumed to keep them off the channel), so there are no collisions.
+- **access**: AIFS[AC] + mean backoff ``CWmin / 2`` slots (IEEE 802.11ax-2021 10.23.2) when
+  the tick opens a TXOP; a SIFS when it continues one (multiple frame exchanges in an EDCA
+  TXOP, 10.23.2.8). The TXOP continues into the next tick when this tick's UL TB PPDU filled
+  it (the exchanges run up to the tick's end) and the next tick ends within the AC's TXOP
+  limit (AC_VI 4.096 ms, Table 9-155), so at most four 1 ms ticks share one access; a beacon
+  ends the TXOP. The stations do not contend: they send only when triggered (their MU EDCA
+  parameter set, 26.2.7, is assumed to keep them off the channel), so there are no collisions.
 - **BSRP exchange**: the AP learns a station's queue only from a buffer status report (BSR,
   26.5.5): a BSRP Trigger frame solicits a QoS Null frame with a BSR from every polled station
   in one HE TB PPDU. A station that sends data reports its queue in the same A-MPDU (the BSR
@@ -58,6 +62,9 @@ class MacTiming:
         characteristics (27.4) keep.
     aifsn, cw_min:
         The AP's EDCA parameters: AC_VI's default AIFSN 2 and CWmin 7 (Table 9-155).
+    txop_limit_us:
+        AC_VI's default TXOP limit for OFDM PHYs, 4.096 ms (Table 9-155); 0: every tick
+        contends anew (one exchange sequence per access).
     legacy_rate_mbps:
         Non-HT rate of the Trigger and multi-STA BlockAck frames (6, 12, 24 Mb/s ...).
     trigger_base_bytes:
@@ -95,7 +102,12 @@ class MacTiming:
     service_tail_bits:
         SERVICE field 16 + BCC tail 6 bits of every PSDU (27.3.12).
     bsrp_interval_ticks:
-        Ticks between BSRP polls of the stations whose queue the AP believes empty.
+        Ticks between BSRP polls of the stations whose queue the AP believes empty (the AP's
+        policy; the standard sets none). 8: a new camera frame waits at most 8 ms, a fifth
+        of its 40 ms deadline, for the AP to learn of it, and each poll's airtime (about a
+        fifth of a tick at MCS 0) is spent half as often as at 5, where the ns-3
+        cross-check's MCS 0 synchronised cell loses a station (``codesign wifi crosscheck``:
+        capacities at 5, 8, 10, 20 ticks in the issue note; 8 and above give the same).
     beacon_interval_us, beacon_bytes, beacon_rate_mbps:
         Beacon every 100 TU (102.4 ms); its size (an assumption: 300 bytes with the HE
         elements) and its non-HT rate (the 6 Mb/s basic rate).
@@ -106,6 +118,7 @@ class MacTiming:
     slot_us: float = 9.0
     aifsn: int = 2
     cw_min: int = 7
+    txop_limit_us: float = 4096.0
     legacy_rate_mbps: float = 24.0
     trigger_base_bytes: int = 28
     trigger_user_bytes: int = 6
@@ -129,7 +142,7 @@ class MacTiming:
     ip_udp_bytes: int = 28
     mtu_bytes: int = 1500
     service_tail_bits: int = 22
-    bsrp_interval_ticks: int = 5
+    bsrp_interval_ticks: int = 8
     beacon_interval_us: float = 102_400.0
     beacon_bytes: int = 300
     beacon_rate_mbps: float = 6.0
@@ -148,6 +161,7 @@ class MacTiming:
             if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
                 raise ValueError(f"{name} must be > 0, got {value!r}")
         non_negative = (
+            "txop_limit_us",
             "sifs_us",
             "he_legacy_preamble_us",
             "he_stf_tb_us",
@@ -194,6 +208,24 @@ class MacTiming:
     def channel_access_us(self) -> float:
         """AIFS + mean backoff: ``SIFS + AIFSN slot + CWmin / 2 slot`` (10.23.2)."""
         return self.sifs_us + self.aifsn * self.slot_us + self.cw_min / 2 * self.slot_us
+
+    @property
+    def txop_ticks(self) -> int:
+        """Most ticks one TXOP spans: the first pays the access, the others a SIFS (10.23.2.8)."""
+        if self.txop_limit_us <= 0:
+            return 1
+        # the TXOP starts after the first tick's access and must cover every later tick whole
+        return max(
+            1,
+            1
+            + math.floor(
+                (self.txop_limit_us - self.tick_us + self.channel_access_us) / self.tick_us + 1e-9
+            ),
+        )
+
+    def access_us(self, continues_txop: bool) -> float:
+        """Gap before a tick's first exchange: a SIFS inside a TXOP, else the channel access."""
+        return self.sifs_us if continues_txop else self.channel_access_us
 
     @property
     def beacon_us(self) -> float:
@@ -282,23 +314,28 @@ class MacTiming:
             + self.multi_sta_ba_us(n_users)
         )
 
-    def ul_data_symbols(self, n_ul_users: int, busy_us: float, phy: PhyConfig) -> int:
-        """Data symbols left for the UL TB PPDU in a tick whose other exchanges take ``busy_us``."""
+    def ul_data_symbols(
+        self, n_ul_users: int, busy_us: float, phy: PhyConfig, *, continues_txop: bool = False
+    ) -> int:
+        """Data symbols left for the UL TB PPDU in a tick whose other exchanges take ``busy_us``.
+
+        ``continues_txop``: the tick continues the previous tick's TXOP (a SIFS, no access).
+        """
         if n_ul_users <= 0:
             return 0
-        left = (
-            self.tick_us - self.channel_access_us - busy_us - self.ul_overhead_us(n_ul_users, phy)
-        )
+        access = self.access_us(continues_txop)
+        left = self.tick_us - access - busy_us - self.ul_overhead_us(n_ul_users, phy)
         return max(0, math.floor(left / phy.ul_symbol_us + 1e-9))
 
     def max_ul_data_symbols(self, phy: PhyConfig, *, with_dl: bool) -> int:
         """Most UL data symbols of any tick (one user, no poll, no beacon), next to a DL exchange.
 
-        The shortest DL exchange (one user, one data and one ack symbol) leaves the most: the
-        offline LP's bound relies on no tick ever getting more.
+        The shortest DL exchange (one user, one data and one ack symbol) leaves the most, in a
+        tick that continues a TXOP when the limit lets one span ticks: the offline LP's bound
+        relies on no tick ever getting more.
         """
         busy = self.dl_exchange_us(1, 1, 1, phy) if with_dl else 0.0
-        return self.ul_data_symbols(1, busy, phy)
+        return self.ul_data_symbols(1, busy, phy, continues_txop=self.txop_ticks > 1)
 
     def breakdown(self, n_ul_users: int, n_dl_users: int, phy: PhyConfig) -> dict[str, float]:
         """Airtime of each part of a tick with one-symbol DL PPDU and acks, in us (for the docs)."""
