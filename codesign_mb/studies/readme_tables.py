@@ -403,11 +403,23 @@ _MEASURES = {"mean": "", "interval": " (not significantly below the target, Wils
 
 def _wifi_method(study: Study) -> str:
     """How Fig. 6's points were run and what their interval is (recorded by newer runs)."""
-    stop = study.get("settings", {}).get("stop_below")
+    settings = study.get("settings", {})
+    stop = settings.get("stop_below")
     if stop is None:
         return ""
-    text = (
-        " A point's success is pooled over its trials x N robot-episodes, with its 95 % "
+    episodes, warmup = settings.get("episodes_per_robot", 1), settings.get("warmup_episodes", 0)
+    text = ""
+    if warmup or episodes != 1:
+        text = (
+            f" Continuous operation: each robot picks one object after another; its first "
+            f"{_count(warmup, 'episode')} (begun with every other robot's) "
+            f"{'is a warm-up' if warmup == 1 else 'are a warm-up'}, the next "
+            f"{_count(episodes, 'episode')} counted, and it keeps working until every robot "
+            "is done, so the cell always carries N robots whose cycles have drifted apart."
+        )
+    text += (
+        f" A point's success is pooled over its trials x N"
+        f"{f' x {episodes}' if episodes != 1 else ''} robot-episodes, with its 95 % "
         "Wilson interval (optimistic: the robots of a trial share the channel)"
     )
     if stop:
@@ -416,6 +428,11 @@ def _wifi_method(study: Study) -> str:
             f"one is below {pct(float(stop))} (its larger N: not run)"
         )
     return text + "."
+
+
+def _count(n: int, noun: str) -> str:
+    """``"episode"`` for 1, ``"3 episodes"`` for 3."""
+    return noun if n == 1 else f"{n} {noun}s"
 
 
 def _stacks(study: Study) -> str:
