@@ -207,6 +207,25 @@ def test_ns3_rts_cts_rescues_synchronised_bursts():
     assert rts.delivered_fraction > plain.delivered_fraction + 0.3
 
 
+@pytest.mark.slow
+@pytest.mark.skipif(not ns3_available(), reason="ns-3 (optional extra [ns3]) not installed")
+def test_crosscheck_runs_ns3_in_a_child_process_and_survives_its_abort():
+    """The cross-check's ns-3 runs go through a child process: the same fraction as in this
+    process, and ``None`` (the point counted as not reached) when ns-3 aborts the run: 3.44's
+    round-robin OFDMA scheduler asserts (``userInfoIt != m_muUserInfos.cend()``) at 35
+    staggered stations at MCS 7."""
+    from codesign_mb.wifi.crosscheck import NS3_SCHEMES, _isolated
+    from codesign_mb.wifi.ns3_driver import run_ns3
+
+    light = Ns3Scenario(n_stations=2, mcs=3, access="su", frames=4, guard_interval_us=0.8)
+    assert _isolated(light) == run_ns3(light).delivered_fraction == 1.0
+    aborts = Ns3Scenario(
+        n_stations=35, mcs=7, guard_interval_us=1.6, capture="staggered", frames=10,
+        skip_frames=2, mu_stations=9, **NS3_SCHEMES["ofdma"],
+    )  # fmt: skip
+    assert _isolated(aborts) is None
+
+
 def test_crosscheck_cli_ours_only(runner):
     import json
 
