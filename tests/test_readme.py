@@ -290,3 +290,20 @@ def test_explain_table_renders_reasons_errors_and_nees() -> None:
     )
     assert lines[5].startswith("| *blind* |  | 1 / 3 / 0 / 0 |") and lines[5].endswith("|  |")
     assert len(lines) == 6  # the skipped row has no metrics
+
+
+def test_crosscheck_section_shows_both_sides_and_counts_the_cells_within_tolerance():
+    from codesign_mb.studies.readme_crosscheck import crosscheck_section
+
+    rows = [
+        {"mcs": 0, "capture": "staggered", "ours_greedy": 4, "ours_convex": 4, "ns3_su": 5,
+         "gap": -0.2, "within_tolerance": True},
+        {"mcs": 7, "capture": "synchronised", "ours_greedy": 40, "ours_convex": 31,
+         "ns3_su": 20, "gap": 1.0, "within_tolerance": False},
+    ]  # fmt: skip
+    text = crosscheck_section({"rows": rows, "tolerance": 0.25, "assumptions": {"ours": "x"}})
+    assert "within 25 % in 1 of 2 cells" in text
+    assert "| 0 | staggered | 4 | 4 | 5 | -20 % |" in text
+    assert "| 7 | synchronised | 40 | 31 | 20 | +100 % |" in text
+    assert "ns-3 OFDMA" not in text  # a set-up the file does not hold has no column
+    assert "- ours: x" in text

@@ -33,6 +33,7 @@ from codesign_mb.plants.outcomes import FAILURE_REASONS
 from codesign_mb.plants.phases import PHASES
 from codesign_mb.studies.paper import MANIFEST, read_study
 from codesign_mb.studies.paper_studies import STUDIES, TABLE_STUDIES
+from codesign_mb.studies.readme_crosscheck import CROSSCHECK_FILE, crosscheck_section
 from codesign_mb.studies.readme_tables import SECTIONS, header, wall_times
 
 __all__ = [
@@ -248,6 +249,8 @@ def render_results(docs_results: str | Path, *, figures_url: str = "docs/figures
     parts = [header(run)]
     for name, study in studies.items():
         parts.append(SECTIONS[name](study, figures_url))
+    if (folder / CROSSCHECK_FILE).is_file():
+        parts.append(crosscheck_section(json.loads((folder / CROSSCHECK_FILE).read_text())))
     parts.append(wall_times(run))
     return "\n\n".join(p.strip("\n") for p in parts) + "\n"
 

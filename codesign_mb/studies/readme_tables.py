@@ -53,6 +53,11 @@ def _count(n: int, noun: str, plural: str = "s") -> str:
     return f"{n} {noun}{'' if n == 1 else plural}"
 
 
+def _some(n: int, noun: str) -> str:
+    """``episode`` for 1 (the first, the next), ``3 episodes`` for 3."""
+    return noun if n == 1 else _count(n, noun)
+
+
 def _number(value: float | None, digits: int = 2) -> str:
     return f"{value:.{digits}f}" if _finite(value) else ""
 
@@ -412,9 +417,9 @@ def _wifi_method(study: Study) -> str:
     if warmup or episodes != 1:
         text = (
             f" Continuous operation: each robot picks one object after another; its first "
-            f"{_count(warmup, 'episode')} (begun with every other robot's) "
+            f"{_some(warmup, 'episode')} (begun with every other robot's) "
             f"{'is a warm-up' if warmup == 1 else 'are a warm-up'}, the next "
-            f"{_count(episodes, 'episode')} counted, and it keeps working until every robot "
+            f"{_some(episodes, 'episode')} counted, and it keeps working until every robot "
             "is done, so the cell always carries N robots whose cycles have drifted apart."
         )
     text += (
@@ -428,11 +433,6 @@ def _wifi_method(study: Study) -> str:
             f"one is below {pct(float(stop))} (its larger N: not run)"
         )
     return text + "."
-
-
-def _count(n: int, noun: str) -> str:
-    """``"episode"`` for 1, ``"3 episodes"`` for 3."""
-    return noun if n == 1 else f"{n} {noun}s"
 
 
 def _stacks(study: Study) -> str:
