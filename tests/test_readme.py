@@ -307,3 +307,21 @@ def test_crosscheck_section_shows_both_sides_and_counts_the_cells_within_toleran
     assert "| 7 | synchronised | 40 | 31 | 20 | +100 % |" in text
     assert "ns-3 OFDMA" not in text  # a set-up the file does not hold has no column
     assert "- ours: x" in text
+
+
+def test_export_of_some_studies_keeps_the_others(constructed: Path, tmp_path: Path) -> None:
+    """`codesign paper --only fig_wifi --readme`: fig_wifi's docs replaced, the rest kept."""
+    docs = tmp_path / "docs"
+    export_results(constructed, docs)
+    kept = (docs / "results" / "lqg.json").read_text()
+    before = json.loads((docs / "results" / "paper.json").read_text())
+    (docs / "results" / "fig_wifi.json").write_text("{}")
+    export_results(constructed, docs, studies=["fig_wifi"])
+    assert (docs / "results" / "lqg.json").read_text() == kept
+    assert json.loads((docs / "results" / "fig_wifi.json").read_text())["study"] == "fig_wifi"
+    after = json.loads((docs / "results" / "paper.json").read_text())
+    assert after["studies"] == before["studies"] and after["command"] == before["command"]
+    total = sum(s["wall_time_s"] for s in after["studies"].values())
+    assert after["studies_wall_time_s"] == pytest.approx(total, abs=0.1)
+    with pytest.raises(ValueError, match="unknown studies"):
+        export_results(constructed, docs, studies=["fig_6"])

@@ -140,8 +140,8 @@ def paper_command(
         command="codesign " + " ".join(shlex.quote(a) for a in sys.argv[1:]),
     )
     note(f"manifest written to {run.path} ({run.manifest['wall_time_s']:.0f} s)")
-    if readme is not None:
-        _render(out, readme, docs)
+    if readme is not None:  # with --only: those studies' docs only, the others' kept
+        _render(out, readme, docs, studies=tuple(only) if only else None)
     rows = [
         {"study": name, "status": s["status"], "wall time s": s.get("wall_time_s")}
         for name, s in run.manifest["studies"].items()
@@ -149,11 +149,18 @@ def paper_command(
     emit(run.manifest if as_json else rows, as_json=as_json, title=f"codesign paper -> {out}")
 
 
-def _render(results_dir: Path | None, readme: Path, docs: Path, *, check: bool = False) -> bool:
+def _render(
+    results_dir: Path | None,
+    readme: Path,
+    docs: Path,
+    *,
+    check: bool = False,
+    studies: tuple[str, ...] | None = None,
+) -> bool:
     from codesign_mb.studies.readme import export_results, update_readme
 
     if results_dir is not None:
-        export_results(results_dir, docs)
+        export_results(results_dir, docs, studies=studies)
         note(f"compact results written to {docs / 'results'}, figures to {docs / 'figures'}")
     changed = update_readme(readme, docs, check=check)
     if not check:

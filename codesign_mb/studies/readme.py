@@ -22,7 +22,7 @@ import json
 import math
 import os
 import shutil
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -167,13 +167,25 @@ def _write_json(path: Path, data: Mapping[str, Any]) -> None:
         fh.write(json.dumps(_compact(to_jsonable(data)), indent=1, allow_nan=False) + "\n")
 
 
-def export_results(results_dir: str | Path, docs_dir: str | Path = "docs") -> list[Path]:
+def export_results(
+    results_dir: str | Path,
+    docs_dir: str | Path = "docs",
+    *,
+    studies: Sequence[str] | None = None,
+) -> list[Path]:
     """Write the compact form of a ``codesign paper`` folder into ``docs_dir``.
 
     ``docs_dir/results/<study>.json`` for every complete study (others' files are removed, so
     the folder describes one run), ``docs_dir/results/paper.json`` and the figures into
     ``docs_dir/figures/`` (:data:`FIGURES`). Returns the files written.
+
+    ``studies`` (``codesign paper --only``): only these studies' files are written (or removed
+    when not complete); the others' are kept, and so is ``paper.json`` but for these
+    studies' entries and the totals over every entry.
     """
+    unknown = sorted(set(studies or ()) - set(STUDIES[:-1]))
+    if unknown:
+        raise ValueError(f"unknown studies {unknown}; known: {', '.join(STUDIES[:-1])}")
     src = Path(results_dir)
     manifest_path = src / MANIFEST
     if not manifest_path.is_file():
@@ -183,7 +195,7 @@ def export_results(results_dir: str | Path, docs_dir: str | Path = "docs") -> li
     results.mkdir(parents=True, exist_ok=True)
     figures.mkdir(parents=True, exist_ok=True)
     written: list[Path] = []
-    for name in STUDIES[:-1]:
+    for name in STUDIES[:-1] if studies is None else tuple(studies):
         done = read_study(src / name)
         target = results / f"{name}.json"
         if done is None:
@@ -225,9 +237,31 @@ def export_results(results_dir: str | Path, docs_dir: str | Path = "docs") -> li
         },
         "provenance": manifest.get("provenance", {}),
     }
+    if studies is not None and (results / MANIFEST).is_file():
+        run = _merge_run(json.loads((results / MANIFEST).read_text()), run, studies)
     _write_json(results / MANIFEST, run)
     written.append(results / MANIFEST)
     return written
+
+
+def _merge_run(
+    old: dict[str, Any], new: Mapping[str, Any], studies: Sequence[str]
+) -> dict[str, Any]:
+    """``old`` run summary with ``studies``' entries from ``new``, the totals recomputed."""
+    entries = dict(old.get("studies", {}))
+    for name in studies:
+        entries.pop(name, None)
+        if name in new["studies"]:
+            entries[name] = new["studies"][name]
+    order = {name: k for k, name in enumerate(STUDIES)}
+    entries = dict(sorted(entries.items(), key=lambda kv: order.get(kv[0], len(order))))
+    merged = {**old, "studies": entries}
+    for total, key in (
+        ("studies_wall_time_s", "wall_time_s"),
+        ("studies_cpu_time_s", "cpu_time_s"),
+    ):
+        merged[total] = round(sum(float(e.get(key) or 0.0) for e in entries.values()), 1)
+    return merged
 
 
 # -- 2. the Markdown -------------------------------------------------------------------------------
