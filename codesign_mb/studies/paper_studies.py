@@ -70,7 +70,7 @@ STUDIES: tuple[str, ...] = ("lqg", *TABLE_STUDIES, "fig_cn", "fig_wifi", "figure
 
 FIG_WIFI_GRID: dict[str, Any] = {
     "stack": "realistic",
-    "robots": (1, 2, 4, 6, 8, 12, 16, 20, 24, 32, 40, 48),
+    "robots": (1, 2, 4, 6, 8, 10, 12, 14, 16, 18, 20, 24, 28, 32, 40, 48),
     "channels": ("paper",),
     "schedulers": ("greedy", "convex"),
     "stop_below": 0.5,
