@@ -325,3 +325,29 @@ def test_export_of_some_studies_keeps_the_others(constructed: Path, tmp_path: Pa
     assert after["studies_wall_time_s"] == pytest.approx(total, abs=0.1)
     with pytest.raises(ValueError, match="unknown studies"):
         export_results(constructed, docs, studies=["fig_6"])
+
+
+def test_time_table_says_what_a_resumed_study_reused() -> None:
+    from codesign_mb.studies.readme_tables import wall_times
+
+    run = {
+        "studies": {
+            "fig_wifi": {"command": "c", "wall_time_s": 600.0, "cpu_time_s": 1200.0,
+                         "resumed_records": 720},
+            "lqg": {"command": "d", "wall_time_s": 8.0, "cpu_time_s": 5.0},
+        },
+        "studies_wall_time_s": 608.0,
+        "studies_cpu_time_s": 1205.0,
+    }  # fmt: skip
+    text = wall_times(run)
+    assert "| `fig_wifi` | `c` | 10.0 min (+ 720 stored records reused) |" in text
+    assert "| `lqg` | `d` | 8 s | 5 s |" in text
+
+
+def test_a_study_counts_the_records_an_interrupted_run_left(tmp_path: Path) -> None:
+    store = tmp_path / ".records"
+    assert paper._stored_records(store) == 0
+    store.mkdir()
+    (store / "a.jsonl").write_text('{"x": 1}\n{"x": 2}\n\n')
+    (store / "b.jsonl").write_text('{"x": 3}\n')
+    assert paper._stored_records(store) == 3

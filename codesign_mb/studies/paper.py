@@ -249,6 +249,7 @@ def _run_study(
     partial, folder = out / f".{name}.partial", out / name
     _clear_partial(partial, keep=(RECORDS_DIR,))
     partial.mkdir(parents=True, exist_ok=True)
+    resumed = _stored_records(partial / RECORDS_DIR)  # an interrupted run's, reused
     started_at = datetime.now(UTC).isoformat(timespec="seconds")
     started, cpu = time.perf_counter(), _cpu_seconds()
     checkpoints: Mapping[str, Path] = {}
@@ -270,6 +271,7 @@ def _run_study(
         "workers": workers,
         "wall_time_s": round(seconds, 1),
         "cpu_time_s": round(_cpu_seconds() - cpu, 1),
+        "resumed_records": resumed,
         "started": started_at,
         "finished": datetime.now(UTC).isoformat(timespec="seconds"),
         "provenance": provenance(checkpoints),
@@ -284,6 +286,18 @@ def _run_study(
     partial.rename(folder)
     shutil.rmtree(old, ignore_errors=True)
     return seconds
+
+
+def _stored_records(store: Path) -> int:
+    """Records (episodes, trials) an earlier run left in a partial folder's store: this run
+    reuses them, so its wall and CPU times cover only the rest."""
+    if not store.is_dir():
+        return 0
+    count = 0
+    for path in store.glob("*.jsonl"):
+        with path.open("rb") as fh:
+            count += sum(1 for line in fh if line.strip())
+    return count
 
 
 def _clear_partial(partial: Path, *, keep: tuple[str, ...]) -> None:

@@ -211,7 +211,14 @@ def export_results(
             "study": name,
             **{
                 k: done.get(k)
-                for k in ("command", "settings", "wall_time_s", "cpu_time_s", "finished")
+                for k in (
+                    "command",
+                    "settings",
+                    "wall_time_s",
+                    "cpu_time_s",
+                    "resumed_records",
+                    "finished",
+                )
             },
             "commit": done.get("provenance", {}).get("commit"),
             "figures": shown,
@@ -230,7 +237,14 @@ def export_results(
         "studies": {
             name: {
                 k: study.get(k)
-                for k in ("command", "wall_time_s", "cpu_time_s", "finished", "commit")
+                for k in (
+                    "command",
+                    "wall_time_s",
+                    "cpu_time_s",
+                    "resumed_records",
+                    "finished",
+                    "commit",
+                )
             }
             for name, study in manifest.get("studies", {}).items()
             if study.get("wall_time_s") is not None

@@ -123,8 +123,8 @@ def wall_times(run: Mapping[str, Any]) -> str:
         [
             f"`{name}`",
             f"`{study.get('command', '')}`",
-            _duration(study.get("wall_time_s")),
-            _duration(study.get("cpu_time_s")),
+            _duration(study.get("wall_time_s")) + _resumed(study),
+            _duration(study.get("cpu_time_s")) + _resumed(study),
         ]
         for name, study in run.get("studies", {}).items()
         if study.get("wall_time_s") is not None
@@ -142,9 +142,16 @@ def wall_times(run: Mapping[str, Any]) -> str:
         "**Time of the run** on the 2-core machine"
         + (f" with {_count(workers, 'worker process', 'es')}" if workers else "")
         + " (CPU: user + system time of the process and its workers, which does not grow "
-        "when other jobs share the machine; wall time does):",
+        "when other jobs share the machine; wall time does; a resumed study's times leave out "
+        "the records, episodes or trials, it took from the interrupted run):",
         markdown_table(["study", "equivalent command", "wall time", "CPU time"], rows),
     )
+
+
+def _resumed(study: Mapping[str, Any]) -> str:
+    """Says a study's time leaves out the stored records it reused (a resumed run)."""
+    n = study.get("resumed_records") or 0
+    return f" (+ {n:,} stored records reused)" if n else ""
 
 
 def _duration(seconds: float | None) -> str:
