@@ -339,7 +339,14 @@ def _manifest(
             "status": status.get(name, "kept"),
             **{
                 k: done.get(k)
-                for k in ("command", "settings", "wall_time_s", "cpu_time_s", "finished")
+                for k in (
+                    "command",
+                    "settings",
+                    "wall_time_s",
+                    "cpu_time_s",
+                    "resumed_records",
+                    "finished",
+                )
             },
             "commit": done.get("provenance", {}).get("commit"),
         }
