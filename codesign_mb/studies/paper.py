@@ -58,6 +58,7 @@ __all__ = [
     "PaperRun",
     "read_study",
     "run_paper",
+    "study_summary",
 ]
 
 STUDY_FILE = "study.json"
@@ -288,6 +289,16 @@ def _run_study(
     return seconds
 
 
+def study_summary(done: Mapping[str, Any]) -> dict[str, Any]:
+    """What the manifest and ``docs/results`` keep of a study's ``study.json``: its command,
+    settings, times (and the stored records a resumed run reused), end and commit."""
+    keys = ("command", "settings", "wall_time_s", "cpu_time_s", "resumed_records", "finished")
+    return {
+        **{k: done.get(k) for k in keys},
+        "commit": done.get("provenance", {}).get("commit"),
+    }
+
+
 def _stored_records(store: Path) -> int:
     """Records (episodes, trials) an earlier run left in a partial folder's store: this run
     reuses them, so its wall and CPU times cover only the rest."""
@@ -335,21 +346,7 @@ def _manifest(
         if done is None:
             studies[name] = {"status": status.get(name, "not selected")}
             continue
-        studies[name] = {
-            "status": status.get(name, "kept"),
-            **{
-                k: done.get(k)
-                for k in (
-                    "command",
-                    "settings",
-                    "wall_time_s",
-                    "cpu_time_s",
-                    "resumed_records",
-                    "finished",
-                )
-            },
-            "commit": done.get("provenance", {}).get("commit"),
-        }
+        studies[name] = {"status": status.get(name, "kept"), **study_summary(done)}
         checkpoints.update(done.get("provenance", {}).get("checkpoints", {}))
     recorded = [s["wall_time_s"] for s in studies.values() if s.get("wall_time_s") is not None]
     cpu = [s["cpu_time_s"] for s in studies.values() if s.get("cpu_time_s") is not None]

@@ -31,7 +31,7 @@ import pandas as pd
 from codesign_mb.core.results import ResultsDir, atomic_write, to_jsonable
 from codesign_mb.plants.outcomes import FAILURE_REASONS
 from codesign_mb.plants.phases import PHASES
-from codesign_mb.studies.paper import MANIFEST, read_study
+from codesign_mb.studies.paper import MANIFEST, read_study, study_summary
 from codesign_mb.studies.paper_studies import STUDIES, TABLE_STUDIES
 from codesign_mb.studies.readme_crosscheck import CROSSCHECK_FILE, crosscheck_section
 from codesign_mb.studies.readme_tables import SECTIONS, header, wall_times
@@ -209,18 +209,7 @@ def export_results(
                 shown.append(shown_as)
         record = {
             "study": name,
-            **{
-                k: done.get(k)
-                for k in (
-                    "command",
-                    "settings",
-                    "wall_time_s",
-                    "cpu_time_s",
-                    "resumed_records",
-                    "finished",
-                )
-            },
-            "commit": done.get("provenance", {}).get("commit"),
+            **study_summary(done),
             "figures": shown,
             **_summary(name, src / name),
         }
