@@ -254,3 +254,30 @@ def test_phy_table_uplink_gi(runner):
     assert row["ul_rate_mbps"] == pytest.approx(468 * 10 * 5 / 6 / 16.0, abs=1e-3)
     bad = runner.invoke(app, ["wifi", "phy-table", "--ul-gi", "0.8"])
     assert bad.exit_code == 2 and "ul_guard_interval_us" in bad.output
+
+
+def test_scheduled_uplink_serves_a_frame_at_its_capture_without_polls():
+    # BSR-only: a frame captured at tick 1 waits for the poll at tick 8; scheduled: served at
+    # tick 1, and no tick carries a BSRP exchange (an idle station is never polled)
+    from dataclasses import replace
+
+    scheduled = replace(CELL, mac=replace(CELL.mac, scheduled_uplink=True))
+    waits, now = _engine(2), _engine(2, scheduled)
+    for engine in (waits, now):
+        engine.layouts = []
+        engine.run_tick(np.ones(2), np.ones(2))  # tick 0
+        engine.add(Frame(0, 0, 1, 40, 10_000, 848))
+        engine.run_tick(np.ones(2), np.ones(2))  # tick 1
+    assert [k for k, d, _ in now.layouts if d == "ul"] == [1]
+    assert [k for k, d, _ in waits.layouts if d == "ul"] == []
+    mac, phy = scheduled.mac, scheduled.phy
+    # scheduled: tick 0 a beacon only (no poll of the idle stations), tick 1 the access and a UL
+    # exchange whose TB PPDU fills the tick (the paper's greedy gives the frame the smallest RU
+    # that finishes it by its deadline: served in part)
+    n_sym = mac.ul_data_symbols(1, 0.0, phy)
+    tick1 = mac.channel_access_us + mac.ul_overhead_us(1, phy) + n_sym * phy.ul_symbol_us
+    assert now.busy_us == pytest.approx(mac.beacon_us + tick1)
+    head_now, head_waits = now.ul_q[0][0], waits.ul_q[0][0]
+    assert head_now.ul_left < head_now.ul_bits and head_waits.ul_left == head_waits.ul_bits
+    with pytest.raises(ValueError, match="scheduled_uplink"):
+        MacTiming(scheduled_uplink=1)  # type: ignore[arg-type]

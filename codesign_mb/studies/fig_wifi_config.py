@@ -60,6 +60,11 @@ Chosen here (the paper does not give them):
     (TGax indoor path loss at 5.5 GHz with 10 dB of walls and clutter, AP 20 dBm, stations
     17 dBm, noise figure 7 dB, robots 5-30 m from the AP): MCS 1 then delivers 99.4-100 % of
     the frames, so the cell's limit is airtime, not loss.
+``"paper-scheduled"``
+    The ``paper`` cell whose AP knows every camera frame it admitted from its capture
+    (:attr:`~codesign_mb.wifi.mac.MacTiming.scheduled_uplink`: the edge decided the request,
+    so it triggers the station in a TWT service period at the capture) and polls no one;
+    ``paper`` learns of frames from buffer status reports only. Not in Fig. 6's default grid.
 ``"better"``
     What a well-planned cell gives: link adaptation (MCS 0-11, the highest whose delivery
     reaches ``sqrt(0.95)`` per hop), the default 0.8 us (DL) and 1.6 us (UL) guard intervals,
@@ -214,6 +219,11 @@ CHANNEL_PRESETS: dict[str, WifiConfig] = {
         mac=MacTiming(legacy_rate_mbps=6.0),
     ),
     "better": WifiConfig(channel=ChannelConfig(q0=0.95, distance_range_m=(5.0, 20.0))),
+    "paper-scheduled": WifiConfig(
+        phy=PhyConfig(guard_interval_us=3.2, ul_guard_interval_us=3.2),
+        channel=ChannelConfig(fixed_mcs=1, rician_k_db=math.inf),
+        mac=MacTiming(legacy_rate_mbps=6.0, scheduled_uplink=True),
+    ),
 }
 """Named cells for ``codesign wifi capacity --channels``."""
 
@@ -230,6 +240,7 @@ def describe_channel(name: str) -> str:
     return (
         f"{phy.bandwidth_mhz} MHz, {mcs}, GI {phy.guard_interval_us:g} us, "
         f"control frames {mac.legacy_rate_mbps:g} Mb/s"
+        + (", UL triggered at capture (no BSR polls)" if mac.scheduled_uplink else "")
     )
 
 

@@ -194,6 +194,9 @@ class ChannelEngine:
             )
         self.ul_q[frame.station].append(frame)
         self.stats.frames[frame.station] += 1
+        if self.config.mac.scheduled_uplink:  # the AP admitted it: known from its capture
+            i = frame.station
+            self._reported[i] = max(int(self._reported[i]), frame.capture_tick)
 
     def drop_station(self, station: int) -> None:
         """Forget every queued frame of a station (its robot left the cell)."""
@@ -395,7 +398,8 @@ class ChannelEngine:
         return self.config.mac.ul_overhead_us(n_sched, self.config.phy) + data_us
 
     def _known(self, i: int) -> bool:
-        """Whether the AP knows of a queued camera frame of station ``i`` (from a BSR)."""
+        """Whether the AP knows of a queued camera frame of station ``i`` (from a BSR; with
+        ``scheduled_uplink``, from its capture on)."""
         q = self.ul_q[i]
         return bool(q) and q[0].capture_tick <= self._reported[i]
 
@@ -406,7 +410,7 @@ class ChannelEngine:
         at most as many stations as the channel has 26-tone RUs, each on an equal RU.
         """
         mac, phy = self.config.mac, self.config.phy
-        if k % mac.bsrp_interval_ticks:
+        if mac.scheduled_uplink or k % mac.bsrp_interval_ticks:
             return 0.0
         idle = [i for i in range(self.n) if not self._known(i)]
         airtime = 0.0

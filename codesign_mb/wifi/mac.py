@@ -15,7 +15,9 @@ One tick is a sequence of frame exchanges of the AP ([air_ul], [air_dl])::
   26.5.5): a BSRP Trigger frame solicits a QoS Null frame with a BSR from every polled station
   in one HE TB PPDU. A station that sends data reports its queue in the same A-MPDU (the BSR
   Control subfield of its HE A-Control, 9.2.4.6a.4), so only stations whose queue the AP
-  believes empty are polled, every ``bsrp_interval_ticks``.
+  believes empty are polled, every ``bsrp_interval_ticks``. With ``scheduled_uplink`` the AP
+  knows each frame it admitted from its capture (a trigger-enabled TWT service period, 26.8)
+  and polls no one.
 - **DL MU exchange**: one HE MU PPDU carries every ready state frame (one A-MPDU per station
   on its RU); the stations return their block acks in an HE TB PPDU (26.5.2).
 - **UL exchange**: basic Trigger frame, SIFS, HE TB PPDU with every data symbol left in the
@@ -108,6 +110,12 @@ class MacTiming:
         fifth of a tick at MCS 0) is spent half as often as at 5, where the ns-3
         cross-check's MCS 0 synchronised cell loses a station (``codesign wifi crosscheck``:
         capacities at 5, 8, 10, 20 ticks in the issue note; 8 and above give the same).
+    scheduled_uplink:
+        ``True``: the AP knows every camera frame it admitted from its capture on and triggers
+        the station without a buffer status report, and polls no one: the edge decided the
+        request itself (the QoS policy runs on its replica of the robot's estimator), so it can
+        serve the frame in a trigger-enabled TWT service period set at the capture (TWT, 26.8).
+        ``False`` (default): the AP learns of frames from BSRs only, as in ns-3's model.
     beacon_interval_us, beacon_bytes, beacon_rate_mbps:
         Beacon every 100 TU (102.4 ms); its size (an assumption: 300 bytes with the HE
         elements) and its non-HT rate (the 6 Mb/s basic rate).
@@ -143,6 +151,7 @@ class MacTiming:
     mtu_bytes: int = 1500
     service_tail_bits: int = 22
     bsrp_interval_ticks: int = 8
+    scheduled_uplink: bool = False
     beacon_interval_us: float = 102_400.0
     beacon_bytes: int = 300
     beacon_rate_mbps: float = 6.0
@@ -200,6 +209,10 @@ class MacTiming:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
+        if not isinstance(self.scheduled_uplink, bool):
+            raise ValueError(
+                f"scheduled_uplink must be true or false, got {self.scheduled_uplink!r}"
+            )
         if not (isinstance(self.mtu_bytes, int) and self.mtu_bytes > self.ip_udp_bytes):
             raise ValueError(f"mtu_bytes must exceed ip_udp_bytes, got {self.mtu_bytes!r}")
 
