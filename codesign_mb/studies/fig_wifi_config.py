@@ -76,7 +76,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 from codesign_mb.adaptation.rules import AgeTriggeredQos
@@ -211,19 +211,17 @@ RULE_SIGNATURES: dict[str, tuple[Callable[..., Any], bool]] = {
 }
 """What each of :data:`QOS_RULES` calls, and whether with the plant: its options' schema."""
 
+_PAPER_CELL = WifiConfig(
+    phy=PhyConfig(guard_interval_us=3.2, ul_guard_interval_us=3.2),
+    channel=ChannelConfig(fixed_mcs=1, rician_k_db=math.inf),
+    mac=MacTiming(legacy_rate_mbps=6.0),
+)
+
 CHANNEL_PRESETS: dict[str, WifiConfig] = {
     # The assumptions, which come from the paper and which were chosen: the module docstring.
-    "paper": WifiConfig(
-        phy=PhyConfig(guard_interval_us=3.2, ul_guard_interval_us=3.2),
-        channel=ChannelConfig(fixed_mcs=1, rician_k_db=math.inf),
-        mac=MacTiming(legacy_rate_mbps=6.0),
-    ),
+    "paper": _PAPER_CELL,
     "better": WifiConfig(channel=ChannelConfig(q0=0.95, distance_range_m=(5.0, 20.0))),
-    "paper-scheduled": WifiConfig(
-        phy=PhyConfig(guard_interval_us=3.2, ul_guard_interval_us=3.2),
-        channel=ChannelConfig(fixed_mcs=1, rician_k_db=math.inf),
-        mac=MacTiming(legacy_rate_mbps=6.0, scheduled_uplink=True),
-    ),
+    "paper-scheduled": replace(_PAPER_CELL, mac=replace(_PAPER_CELL.mac, scheduled_uplink=True)),
 }
 """Named cells for ``codesign wifi capacity --channels``."""
 
