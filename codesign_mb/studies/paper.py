@@ -55,6 +55,7 @@ from codesign_mb.studies.paper_studies import (
 __all__ = [
     "MANIFEST",
     "STUDY_FILE",
+    "SUMMARY_KEYS",
     "PaperRun",
     "read_study",
     "run_paper",
@@ -289,12 +290,15 @@ def _run_study(
     return seconds
 
 
+SUMMARY_KEYS = ("command", "settings", "wall_time_s", "cpu_time_s", "resumed_records", "finished")
+"""What the manifest and ``docs/results`` keep of a study's ``study.json`` (and its commit)."""
+
+
 def study_summary(done: Mapping[str, Any]) -> dict[str, Any]:
-    """What the manifest and ``docs/results`` keep of a study's ``study.json``: its command,
-    settings, times (and the stored records a resumed run reused), end and commit."""
-    keys = ("command", "settings", "wall_time_s", "cpu_time_s", "resumed_records", "finished")
+    """A study's :data:`SUMMARY_KEYS` and the commit that made it: its command, settings, times
+    (and the stored records a resumed run reused) and end."""
     return {
-        **{k: done.get(k) for k in keys},
+        **{k: done.get(k) for k in SUMMARY_KEYS},
         "commit": done.get("provenance", {}).get("commit"),
     }
 

@@ -31,7 +31,7 @@ import pandas as pd
 from codesign_mb.core.results import ResultsDir, atomic_write, to_jsonable
 from codesign_mb.plants.outcomes import FAILURE_REASONS
 from codesign_mb.plants.phases import PHASES
-from codesign_mb.studies.paper import MANIFEST, read_study, study_summary
+from codesign_mb.studies.paper import MANIFEST, SUMMARY_KEYS, read_study, study_summary
 from codesign_mb.studies.paper_studies import STUDIES, TABLE_STUDIES
 from codesign_mb.studies.readme_crosscheck import CROSSCHECK_FILE, crosscheck_section
 from codesign_mb.studies.readme_tables import SECTIONS, header, wall_times
@@ -225,15 +225,7 @@ def export_results(
         "studies_cpu_time_s": manifest.get("studies_cpu_time_s"),
         "studies": {
             name: {
-                k: study.get(k)
-                for k in (
-                    "command",
-                    "wall_time_s",
-                    "cpu_time_s",
-                    "resumed_records",
-                    "finished",
-                    "commit",
-                )
+                k: study.get(k) for k in (*(k for k in SUMMARY_KEYS if k != "settings"), "commit")
             }
             for name, study in manifest.get("studies", {}).items()
             if study.get("wall_time_s") is not None

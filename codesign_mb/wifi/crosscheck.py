@@ -187,7 +187,7 @@ def capacity(
     capacity from ``guess`` (multiplying or dividing by ``step``), then bisects. Returns the
     capacity and every fraction evaluated. ``known``: fractions already measured (an
     earlier run's), used as if evaluated; when they bracket the capacity, the search starts
-    from that bracket.
+    from that bracket, else from the largest known count reaching ``target``.
     """
     seen: dict[int, float] = dict(known or {})
 
@@ -203,6 +203,8 @@ def capacity(
         hi = missed[0]
         lo = max(n for n in reached if n < hi)
         guess = None
+    elif reached:  # start the search where the known counts left it
+        guess = reached[-1]
     if guess is not None and 1 <= guess <= max_stations:
         probe = guess
         if ok(probe):
@@ -336,10 +338,9 @@ def crosscheck(
                 known = {int(n): float(v) for n, v in old.items()}
                 failed: list[int] = []
                 fraction = _ns3_fraction(cfg, mcs, capture, access, known, progress, failed)
-                # start the search where earlier runs found the capacity, else at ours
-                start = max((n for n, v in known.items() if v >= CROSSCHECK_TARGET), default=0)
+                # from the earlier runs' counts when there are some, else from ours
                 cap, seen = capacity(
-                    fraction, cfg.max_stations, guess=start or guess, step=1.25, known=known
+                    fraction, cfg.max_stations, guess=guess, step=1.25, known=known
                 )
                 row[f"ns3_{access}"] = cap
                 if failed:
