@@ -128,3 +128,51 @@ def test_a_carried_object_follows_the_gripper() -> None:
         imm.estimate(_wrapped(obs, t - 3), closed)
     np.testing.assert_allclose(imm.state[:3] - start, [0.0, 0.0, 0.12], atol=1e-9)
     assert imm.position_std < 0.02
+
+
+def test_the_likeliest_velocity_is_the_stopped_belt_s_while_the_mixture_creeps() -> None:
+    """A stopped belt with no packet for a few steps: the mixture's velocity creeps towards a
+    restart (a likely STOP, an unlikely START at the nominal speed), the most probable mode's
+    stays at rest; position and covariance are the mixture's in both outputs."""
+    model = BeltModel(DT, nominal_velocity_mps=(0.0, 0.6, 0.0), position_noise_std_m=0.001)
+    layout = {"object_pos": slice(0, 3)}
+    out = {}
+    for choice in ("mixture", "likeliest"):
+        imm = BeltImmPredictor(
+            layout, model=model, prior_position_std_m=0.01, output_velocity=True,
+            velocity_output=choice,
+        )  # fmt: skip
+        imm.reset(_wrapped(np.zeros(3), 0))
+        for _ in range(1, 20):  # at rest, seen every step
+            imm.estimate(_wrapped(np.zeros(3), 0), np.zeros(0))
+        for age in range(1, 5):  # then no packet
+            y = imm.estimate(_wrapped(np.zeros(3), age), np.zeros(0))
+        assert imm.mode_probabilities["stop"] > 0.5
+        out[choice] = (y, imm.state.copy())
+    mixture, likeliest = out["mixture"], out["likeliest"]
+    assert mixture[0][4] > 0.03  # the mixture's velocity output creeps
+    assert likeliest[0][4] == pytest.approx(0.0, abs=1e-3)  # STOP's
+    np.testing.assert_allclose(mixture[0][:3], likeliest[0][:3])  # same position
+    np.testing.assert_allclose(mixture[1], likeliest[1])  # same mixture state (NEES)
+    with pytest.raises(ValueError, match="velocity_output must be"):
+        BeltImmPredictor(layout, model=model, velocity_output="mode")
+
+
+def test_reopening_fingers_carry_nothing_even_for_an_edge_replica() -> None:
+    """The edge's replica does not see the grip command: fingers that reverse after a close
+    (width growing by 1.5 mm, then more) are not taken for a held object."""
+    layout = {
+        "gripper_pos": slice(0, 3), "finger_width": slice(3, 4), "object_pos": slice(4, 7)
+    }  # fmt: skip
+    model = BeltModel(DT, nominal_velocity_mps=(0.0, 0.3, 0.0))
+    imm = BeltImmPredictor(layout, model=model, prior_position_std_m=0.01)
+    gripper, obj = np.array([0.5, 0.0, 0.03]), np.array([0.5, 0.0, 0.02])
+    imm.reset(_wrapped(np.concatenate([gripper, [0.08], obj]), 0))
+    carried = []
+    for width in (0.066, 0.058, 0.050, 0.045, 0.0465, 0.054, 0.062):  # closes, then reopens
+        imm.estimate(_wrapped(np.concatenate([gripper, [width], obj]), 0), np.zeros(0))
+        carried.append(imm.carried)
+    assert not any(carried)
+    for _ in range(3):  # closed on the object: steady at its width
+        imm.estimate(_wrapped(np.concatenate([gripper, [0.044], obj]), 0), np.zeros(0))
+    assert imm.carried

@@ -235,3 +235,56 @@ def test_the_fingers_close_only_on_a_certain_estimate() -> None:
     assert all(ph < Phase.GRASP and grip < 0 for step, ph, grip in uncertain if step < 40)
     assert np.hypot(*(waiting - obj)[:2]) < cfg.grasp_tolerance_m  # waiting over the object
     assert any(ph == Phase.GRASP and grip > 0 for step, ph, grip in uncertain if step >= 40)
+
+
+def test_closing_fingers_reopen_when_the_object_leaves_them() -> None:
+    """A belt stop under closing fingers: the estimate jumps 3 cm ahead of the gripper; with
+    ``grasp_abort_tolerance_m`` the fingers reopen (DESCEND) and close again once over it,
+    without it the close runs its steps into LIFT on nothing."""
+
+    def run(abort: float | None) -> list[tuple[Phase, float]]:
+        cfg = _config(grasp_abort_tolerance_m=abort)
+        ctl = MpcController(LAYOUT, control_period_s=DT, max_speed_mps=V_MAX, config=cfg)
+        ctl.reset(seed=0)
+        a, bp_v, bp_u = lag_discretisation(DT, cfg.lag_time_constant_s, cfg.position_blend)
+        p, v = np.array([0.3, 0.0, 0.06]), np.zeros(3)
+        obj = np.array([0.3, 0.0, 0.05])
+        seen = []
+        for step in range(40):
+            if step == 3:
+                obj = obj + np.array([0.03, 0.0, 0.0])  # moved while the fingers close
+            action = ctl.act(_obs(p, v, 0.08, obj, (0, 0, 0)))
+            seen.append((ctl.phase, action[3]))
+            u = action[:3] * V_MAX
+            p, v = p + bp_v * v + bp_u * u, a * v + (1 - a) * u
+        return seen
+
+    kept = run(None)
+    assert kept[2][0] == Phase.GRASP and Phase.DESCEND not in [ph for ph, _ in kept[3:]]
+    reopened = run(0.02)
+    assert reopened[2][0] == Phase.GRASP
+    assert reopened[3] == (Phase.DESCEND, -1.0)  # the fingers open at once
+    assert any(ph == Phase.GRASP for ph, _ in reopened[4:])  # and close over it again
+
+
+def test_a_flat_funnel_along_the_belt_lets_the_open_fingers_slide_low() -> None:
+    """``funnel_slope_y = 0``: with the gripper 5 cm along the belt (y) from the object at
+    its grasp height, the QP keeps it low (no slack); the default pyramid lifts it."""
+    obj = np.array([0.3, 0.0, 0.05])
+    p = np.array([0.3, 0.05, 0.05])
+    for slope_y, low in ((None, False), (0.0, True)):
+        cfg = _config(funnel_slope=2.0, funnel_slope_y=slope_y)
+        qp = MpcQp(cfg, dt=DT, max_speed_mps=V_MAX)
+        path = np.tile(obj, (qp.n, 1))
+        theta = qp.pack(p, np.zeros(3), np.zeros(3), path, np.zeros((qp.n, 3)), path)
+        sol = qp.solve(theta)
+        assert sol.success
+        ps, _ = _simulate(sol.commands, p, np.zeros(3), cfg)
+        if low:
+            assert sol.slack < 1e-6 and np.max(ps[:, 2]) < obj[2] + 0.01
+        else:  # the pyramid wants 2 x 5 cm above the apex at once: up, or slack
+            assert np.max(ps[:, 2]) > obj[2] + 0.02 or sol.slack > 1e-3
+    with pytest.raises(ValueError, match="funnel_slope_y must be >= 0"):
+        MpcConfig(funnel_slope_y=-1.0)
+    with pytest.raises(ValueError, match="abort_tolerance_y_m must be > 0"):
+        MpcConfig(abort_tolerance_y_m=0.0)

@@ -165,3 +165,31 @@ def test_episode_metrics_count_each_high_request_under_its_reason() -> None:
         assert counts == {f"qos_asked_{r.replace(' ', '_')}": float(n) for r, n in expected.items()}
         assert counts["qos_asked_nothing_measured_yet"] == 2.0  # t = 0 and t = 1
         assert counts["qos_asked_far"] > 0  # the uncertainty outgrows far_std_m without packets
+
+
+def test_closing_packets_only_while_the_fingers_can_still_reopen() -> None:
+    """Fingers closing over the object, no packet arriving: the planner asks ("closing")
+    while they are wider than ``closing_useful_width_m``; narrower, a packet would come when
+    they are on the object already, and nothing is asked; without the option it asks on."""
+    layout = {
+        "gripper_pos": slice(0, 3), "finger_width": slice(3, 4), "object_pos": slice(4, 7)
+    }  # fmt: skip
+
+    def reasons(useful: float) -> list[tuple[float, str | None]]:
+        replica = BeltImmPredictor(layout, model=MODEL, prior_position_std_m=0.01)
+        planner = QosPlanner(replica, layout, grasp_std_m=0.01, closing_std_m=0.004,
+                             closing_useful_width_m=useful)  # fmt: skip
+        planner.reset()
+        obj = [0.5, 0.0, 0.02]
+        planner.request(np.array([*obj[:2], 0.03, 0.08, *obj]), 0)
+        for _ in range(3):  # measured, the gripper over it
+            planner.request(np.array([*obj[:2], 0.03, 0.08, *obj]), 1)
+        seen = []
+        for age, width in enumerate((0.074, 0.066, 0.058, 0.050), start=2):  # no packet
+            over = replica.state[:3] + np.array([0.0, 0.0, 0.005])
+            planner.request(np.array([*over, width, *obj]), age)
+            seen.append((width, planner.reason))
+        return seen
+
+    assert [r for _, r in reasons(0.0)] == ["closing"] * 4
+    assert reasons(0.06) == [(0.074, "closing"), (0.066, "closing"), (0.058, None), (0.05, None)]

@@ -12,8 +12,10 @@ point, once aligned laterally; back to APPROACH only if the lateral error grows 
 :attr:`MpcConfig.abort_tolerance_m`, the funnel keeping the gripper high enough in between) ->
 GRASP (close the fingers while tracking, for a few steps; with
 :attr:`MpcConfig.grasp_std_gate_m` only once the estimate is certain enough, the gripper
-tracking the object at the grasp point until then) -> LIFT (reference: straight up;
-funnel off). A grasp that closes on nothing (fingers shut) opens and goes back to APPROACH.
+tracking the object at the grasp point until then; with
+:attr:`MpcConfig.grasp_abort_tolerance_m` the fingers reopen, back to DESCEND, when the
+object moves away from under them) -> LIFT (reference: straight up; funnel off). A grasp that
+closes on nothing (fingers shut) opens and goes back to APPROACH.
 The defaults were tuned on the conveyor with perception noise and a variable belt speed.
 """
 
@@ -286,7 +288,7 @@ class MpcController:
         if self.phase == Phase.APPROACH and lateral <= cfg.align_tolerance_m:
             self.phase = Phase.DESCEND
         elif self.phase == Phase.DESCEND:
-            if lateral > cfg.abort_tolerance_m:
+            if self._off_object(e0, e1, lateral):
                 self.phase = Phase.APPROACH
             elif (
                 lateral <= cfg.grasp_tolerance_m
@@ -296,8 +298,11 @@ class MpcController:
                 self.phase = Phase.GRASP
                 self._closing = 0
         elif self.phase == Phase.GRASP:
+            abort = cfg.grasp_abort_tolerance_m
             self._closing += 1
-            if self._closing > cfg.close_steps:
+            if abort is not None and lateral > abort:
+                self.phase = Phase.DESCEND  # the object left the closing fingers: reopen
+            elif self._closing > cfg.close_steps:
                 if width < cfg.min_grip_width_m:
                     self.phase = Phase.APPROACH  # closed on nothing: open and retry
                 else:
@@ -314,6 +319,15 @@ class MpcController:
             origin, self._ws_low, self._ws_high, OFF,
         )  # fmt: skip
         return self._theta
+
+    def _off_object(self, e0: float, e1: float, lateral: float) -> bool:
+        """DESCEND gives up (back to APPROACH): the lateral error beyond
+        :attr:`MpcConfig.abort_tolerance_m`, or, with :attr:`MpcConfig.abort_tolerance_y_m`,
+        across the belt (x) beyond the one and along it (y) beyond the other."""
+        cfg = self.config
+        if cfg.abort_tolerance_y_m is None:
+            return lateral > cfg.abort_tolerance_m
+        return abs(e0) > cfg.abort_tolerance_m or abs(e1) > cfg.abort_tolerance_y_m
 
     def _safe_command(self, p: NDArray[np.float64]) -> NDArray[np.float64]:
         lo = np.asarray(self.config.workspace_low)

@@ -47,6 +47,11 @@ class MpcConfig:
         How far inside the plant's workspace box the MPC's box lies.
     funnel_slope:
         ``c``: height gained per metre of lateral offset from the object (approach funnel).
+    funnel_slope_y:
+        The funnel's slope along the belt (y); ``None``: :attr:`funnel_slope`. The fingers
+        close across the belt (x): open, they straddle the object and may slide along it at
+        the grasp height (``0``), so an object that stops or restarts under the gripper is
+        followed low instead of from above.
     clearance_m:
         Height of the clearance plane above the grasp point while not aligned (APPROACH).
     hover_height_m:
@@ -61,6 +66,10 @@ class MpcConfig:
     abort_tolerance_m:
         Lateral error above which DESCEND returns to APPROACH (in between, the funnel keeps
         the gripper high enough while it re-aligns).
+    abort_tolerance_y_m:
+        With it, :attr:`abort_tolerance_m` bounds the error across the belt (x) and this one
+        the error along it (y), where the open fingers straddle the object; ``None``: one
+        bound on the lateral error.
     grasp_tolerance_m, grasp_height_tolerance_m:
         Lateral and vertical distances to the grasp point below which the fingers close.
     funnel_apex_depth_m:
@@ -74,6 +83,12 @@ class MpcConfig:
         :class:`~codesign_mb.estimation.belt_imm.BeltImmPredictor` with ``output_std``) is at
         most this; until then the gripper tracks the object at the grasp point and waits.
         ``None``: close on position alone.
+    grasp_abort_tolerance_m:
+        Lateral error to the estimated grasp point above which closing fingers reopen and the
+        pick goes back to DESCEND (the object moved from under them: a belt stop or restart
+        the gripper could not follow within the closing steps; the cube is still grasped
+        20 mm off centre, not 30 mm, measured on the variable belt with every packet);
+        ``None``: a close, once begun, runs its :attr:`close_steps`.
     min_grip_width_m:
         A finger width below this after closing means the grasp missed (back to APPROACH).
     weight_position, weight_height, weight_velocity, weight_command, weight_rate, weight_terminal:
@@ -108,6 +123,8 @@ class MpcConfig:
     workspace_high: tuple[float, float, float] | None = None
     workspace_margin_m: float = 0.005
     funnel_slope: float = 1.5
+    funnel_slope_y: float | None = None
+    abort_tolerance_y_m: float | None = None
     clearance_m: float = 0.04
     hover_height_m: float = 0.06
     grasp_offset_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
@@ -119,6 +136,7 @@ class MpcConfig:
     funnel_apex_depth_m: float = 0.015
     close_steps: int = 5
     grasp_std_gate_m: float | None = None
+    grasp_abort_tolerance_m: float | None = None
     min_grip_width_m: float = 0.005
     weight_position: float = 100.0
     weight_height: float = 100.0
@@ -197,9 +215,13 @@ class MpcConfig:
                 raise ValueError(f"{name} must be >= 0, got {value}")
         if not (math.isfinite(self.weight_rate) and self.weight_rate > 0):
             raise ValueError(f"weight_rate must be > 0, got {self.weight_rate}")
-        gate = self.grasp_std_gate_m
-        if gate is not None and not (math.isfinite(gate) and gate > 0):
-            raise ValueError(f"grasp_std_gate_m must be > 0 or None, got {gate!r}")
+        for name in ("grasp_std_gate_m", "grasp_abort_tolerance_m", "abort_tolerance_y_m"):
+            gate = getattr(self, name)
+            if gate is not None and not (math.isfinite(gate) and gate > 0):
+                raise ValueError(f"{name} must be > 0 or None, got {gate!r}")
+        slope = self.funnel_slope_y
+        if slope is not None and not (math.isfinite(slope) and slope >= 0):
+            raise ValueError(f"funnel_slope_y must be >= 0 or None, got {slope!r}")
         if not isinstance(self.joint_limits, bool):
             raise ValueError(f"joint_limits must be a bool, got {self.joint_limits!r}")
         if not (math.isfinite(self.joint_margin_rad) and self.joint_margin_rad >= 0):

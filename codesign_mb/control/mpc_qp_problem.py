@@ -176,6 +176,7 @@ class MpcQpProblem:
         acc, pos, vel, funnel, clearance = [], [], [], [], []
         u_last = u_prev
         c = cfg.funnel_slope
+        c_y = c if cfg.funnel_slope_y is None else cfg.funnel_slope_y
         for k in range(n):
             uk = U[:, k]
             v_next = a * v + (1 - a) * uk
@@ -193,7 +194,7 @@ class MpcQpProblem:
             dx = p[0] - apex[0, k]
             dy = p[1] - apex[1, k]
             rel = p[2] - apex[2, k] + s
-            funnel.extend([rel - c * dx, rel + c * dx, rel - c * dy, rel + c * dy])
+            funnel.extend([rel - c * dx, rel + c * dx, rel - c_y * dy, rel + c_y * dy])
             clearance.append(p[2] + s - plane[k])
         # Terminal cost: the per-axis LQ cost-to-go of (e_p, e_v, e_u-) at step N (DARE).
         for i, weight in enumerate((cfg.weight_position, cfg.weight_position, cfg.weight_height)):

@@ -87,6 +87,11 @@ class BeltImmPredictor:
         else: what an uncertainty-aware controller reads.
     holding_width_m:
         Finger widths ``(low, high)`` that mean an object is in the closed fingers.
+    velocity_output:
+        The velocity the output carries: ``"mixture"`` (the moment-matched mean) or
+        ``"likeliest"`` (the most probable mode's). A controller extrapolating the object
+        with it should not aim between a stopped belt and one that may restart: the mixture
+        of a likely STOP and an unlikely START moves at a speed neither has.
     """
 
     def __init__(
@@ -100,6 +105,7 @@ class BeltImmPredictor:
         output_velocity: bool = False,
         output_std: bool = False,
         holding_width_m: tuple[float, float] = (0.02, 0.07),
+        velocity_output: str = "mixture",
     ) -> None:
         if "object_pos" not in layout:
             raise ValueError("observation layout lacks object_pos")
@@ -109,6 +115,11 @@ class BeltImmPredictor:
             )
         if int(max_delay_steps) != max_delay_steps or max_delay_steps < 1:
             raise ValueError(f"max_delay_steps must be an integer >= 1, got {max_delay_steps!r}")
+        if velocity_output not in ("mixture", "likeliest"):
+            raise ValueError(
+                f"velocity_output must be 'mixture' or 'likeliest', got {velocity_output!r}"
+            )
+        self.velocity_output = velocity_output
         self.layout = dict(layout)
         self.model = model
         self._pos = slice_indices(self.layout["object_pos"])
@@ -291,7 +302,10 @@ class BeltImmPredictor:
         low, high = self.holding_width_m
         closed = float(action[3]) > 0.0 if len(action) >= 4 else True  # an edge replica: no grip
         steady = last is not None and abs(width - last) < 0.002
-        return closed and low <= width <= high and (steady or self._carried)
+        # Fingers that open hold nothing (an edge replica, which does not see the grip
+        # command, sees a reopening after an aborted close only by this).
+        opening = last is not None and width > last + 0.001
+        return closed and not opening and low <= width <= high and (steady or self._carried)
 
     def _time_update(
         self,
@@ -378,11 +392,16 @@ class BeltImmPredictor:
 
     def _output(self, plant_obs: NDArray[np.float64]) -> NDArray[np.float64]:
         out = np.array(plant_obs, dtype=float, copy=True)
-        mean, cov = self._steps[-1].moments()
+        last = self._steps[-1]
+        mean, cov = last.moments()
+        velocity = mean[3:6]
+        if self.velocity_output == "likeliest":
+            mu, means, _ = last.posterior
+            velocity = means[int(np.argmax(mu)), 3:6]
         out[self._pos] = mean[:3]
         if self._vel is not None:
-            out[self._vel] = mean[3:6]
-        extra = [mean[3:6]] if self.output_velocity else []
+            out[self._vel] = velocity
+        extra = [velocity] if self.output_velocity else []
         if self.output_std:
             extra.append(np.array([_lateral_std(cov)]))
         return np.concatenate([out, *extra]) if extra else out
