@@ -106,14 +106,19 @@ def test_a_stop_is_found_from_positions_alone() -> None:
     assert set(imm.mode_probabilities) == set(MODES)
 
 
-def test_a_carried_object_follows_the_gripper() -> None:
-    """Held (fingers closed at an object's width), the object moves as the gripper does."""
+def _over_the_object() -> tuple[BeltImmPredictor, np.ndarray, np.ndarray]:
+    """An IMM whose layout has the gripper and the fingers, the gripper just over the object."""
     layout = {
         "gripper_pos": slice(0, 3), "finger_width": slice(3, 4), "object_pos": slice(4, 7)
     }  # fmt: skip
     model = BeltModel(DT, nominal_velocity_mps=(0.0, 0.3, 0.0))
     imm = BeltImmPredictor(layout, model=model, prior_position_std_m=0.01)
-    gripper, obj = np.array([0.5, 0.0, 0.03]), np.array([0.5, 0.0, 0.02])
+    return imm, np.array([0.5, 0.0, 0.03]), np.array([0.5, 0.0, 0.02])
+
+
+def test_a_carried_object_follows_the_gripper() -> None:
+    """Held (fingers closed at an object's width), the object moves as the gripper does."""
+    imm, gripper, obj = _over_the_object()
     obs = np.concatenate([gripper, [0.08], obj])
     imm.reset(_wrapped(obs, 0))
     closed = np.array([0.0, 0.0, 0.0, 1.0])
@@ -161,12 +166,7 @@ def test_the_likeliest_velocity_is_the_stopped_belt_s_while_the_mixture_creeps()
 def test_reopening_fingers_carry_nothing_even_for_an_edge_replica() -> None:
     """The edge's replica does not see the grip command: fingers that reverse after a close
     (width growing by 1.5 mm, then more) are not taken for a held object."""
-    layout = {
-        "gripper_pos": slice(0, 3), "finger_width": slice(3, 4), "object_pos": slice(4, 7)
-    }  # fmt: skip
-    model = BeltModel(DT, nominal_velocity_mps=(0.0, 0.3, 0.0))
-    imm = BeltImmPredictor(layout, model=model, prior_position_std_m=0.01)
-    gripper, obj = np.array([0.5, 0.0, 0.03]), np.array([0.5, 0.0, 0.02])
+    imm, gripper, obj = _over_the_object()
     imm.reset(_wrapped(np.concatenate([gripper, [0.08], obj]), 0))
     carried = []
     for width in (0.066, 0.058, 0.050, 0.045, 0.0465, 0.054, 0.062):  # closes, then reopens
