@@ -193,7 +193,7 @@ def _steps(
 def test_summary_pools_the_steps_of_every_episode() -> None:
     episodes = [
         _steps([-1, 0, 0, 1, 2], [0.5, 0.001, 0.003, 0.002, 0.004], [9.0, 1.0, 2.0, 3.0, 4.0]),
-        _steps([0, 0, 0, 0, 0], [0.002, 0.002, 0.004, 0.001, 0.0], [0.5, 1.5, 2.5, 3.5, 4.5]),
+        _steps([0, 0, 0, 0, 0], [0.002, 0.002, 0.004, 0.001, 0.0], [0.5, 1.5, 2.5, 3.5, 8.5]),
     ]
     table = pd.DataFrame([episode_row(s) for s in episodes])
     summary = summarize(table)
@@ -202,6 +202,8 @@ def test_summary_pools_the_steps_of_every_episode() -> None:
         errors, values = steps["position_error_m"][mask], steps["nees_position"][mask]
         assert summary[f"est_error_mm{suffix}"] == pytest.approx(1e3 * np.sqrt(np.mean(errors**2)))
         assert summary[f"nees{suffix}"] == pytest.approx(values.mean())
+        inside = np.mean(values <= chi2.ppf(0.95, 3))  # 7.81: the 8.5 step is outside
+        assert summary[f"nees_inside{suffix}"] == pytest.approx(inside)
         assert summary[f"phase_steps{suffix}"] == mask.sum()
         band = nees_band(int(mask.sum()), 3)
         assert (summary[f"nees{suffix}_low"], summary[f"nees{suffix}_high"]) == band

@@ -272,6 +272,9 @@ def test_explain_table_renders_reasons_errors_and_nees() -> None:
         },
         **{f"nees_{p}_low": 2.9 for p in ("belt", "grasp", "carried")},
         **{f"nees_{p}_high": 3.1 for p in ("belt", "grasp", "carried")},
+        "nees_inside_belt": 0.912,
+        "nees_inside_grasp": 0.5,
+        "nees_inside_carried": None,
     }
     skipped = {"row": "SAC + MLP", "status": "incompatible checkpoint: x"}
     none = {
@@ -286,9 +289,11 @@ def test_explain_table_renders_reasons_errors_and_nees() -> None:
     assert "| failures (dropped / missed grasp / off belt / timeout) |" in lines[2]
     assert lines[4] == (
         "| MPC + predictor, rule QoS (co-design) | 0.0139 m | 1 / 3 / 0 / 0 | 2.35 s | "
-        "28.0 / 6.7 / 11.4 | 4.4 [2.90, 3.10] / 4.4 [2.90, 3.10] / 12.5 [2.90, 3.10] |"
+        "28.0 / 6.7 / 11.4 | 4.4 [2.90, 3.10] / 4.4 [2.90, 3.10] / 12.5 [2.90, 3.10] | "
+        "91 % / 50 % /  |"
     )
-    assert lines[5].startswith("| *blind* |  | 1 / 3 / 0 / 0 |") and lines[5].endswith("|  |")
+    assert lines[5].startswith("| *blind* |  | 1 / 3 / 0 / 0 |")
+    assert lines[5].endswith("|  | 91 % / 50 % /  |")  # no NEES, the shares it was given
     assert len(lines) == 6  # the skipped row has no metrics
 
 

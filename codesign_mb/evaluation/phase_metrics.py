@@ -14,13 +14,20 @@ the scene, i.e. the three phases; the steps before it spawned are in none):
 ``nees_<p>``, ``nees_state_<p>``
     The mean NEES over those steps, of the position (3 degrees of freedom) and of position
     and velocity (6), for an estimator exposing its covariance (else absent).
+``nees_inside_<p>``
+    The share of those steps whose position NEES is within the chi-square 95 % quantile (3
+    degrees of freedom): the true object inside the estimator's 95 % ellipsoid, 0.95 for a
+    consistent filter. Unlike the mean, it is not carried by a few large errors: a switching
+    filter seeing a rare unannounced jump late has a heavy-tailed NEES whose mean says little
+    about the bulk of its steps.
 
 Pooled over the episodes (:func:`summarize_phases`, in
 :func:`~codesign_mb.evaluation.evaluate.summarize`): ``phase_steps_<p>`` summed,
 ``est_error_mm_<p>`` the RMS over all the phase's steps of all episodes (pooled: every step
-weighs the same, whatever its episode), ``nees_<p>`` the mean NEES over all those steps, and
-``nees_<p>_low`` / ``nees_<p>_high`` the two-sided band in which that mean lies with the
-summary's confidence under a consistent filter
+weighs the same, whatever its episode), ``nees_<p>`` the mean NEES over all those steps,
+``nees_inside_<p>`` the share of them inside the ellipsoid, and ``nees_<p>_low`` /
+``nees_<p>_high`` the two-sided band in which that mean lies with the summary's confidence
+under a consistent filter
 (:func:`~codesign_mb.estimation.consistency.nees_band`, ``N`` = the steps). The band assumes
 independent samples; consecutive steps' errors are correlated (the filter's error decays over
 several steps), so the true band of a consistent filter is wider: a mean just outside it is no
@@ -34,11 +41,13 @@ from typing import Any
 
 import numpy as np
 import pandas as pd
+from scipy.stats import chi2
 
 from codesign_mb.estimation.consistency import nees_band
 from codesign_mb.plants.phases import PHASES
 
 __all__ = [
+    "INSIDE_PROBABILITY",
     "NEES_DOF",
     "PHASE_SUFFIXES",
     "SUMMARY_COLUMNS",
@@ -52,6 +61,11 @@ PHASE_SUFFIXES = ("", *(f"_{p}" for p in PHASES))
 NEES_DOF = {"nees": 3, "nees_state": 6}
 """Degrees of freedom of each NEES: the position, the position and velocity."""
 
+INSIDE_PROBABILITY = 0.95
+"""The ellipsoid of ``nees_inside_<p>``: the position NEES within this chi-square quantile."""
+
+_INSIDE_LIMIT = float(chi2.ppf(INSIDE_PROBABILITY, NEES_DOF["nees"]))
+
 _NEES_COLUMNS = {"nees": "nees_position", "nees_state": "nees_state"}
 
 SUMMARY_COLUMNS = tuple(
@@ -60,6 +74,7 @@ SUMMARY_COLUMNS = tuple(
         ("phase_steps", ("",)),
         ("est_error_mm", ("",)),
         ("nees", ("", "_low", "_high")),
+        ("nees_inside", ("",)),
         ("nees_state", ("", "_low", "_high")),
     )
     for suffix in PHASE_SUFFIXES
@@ -89,6 +104,9 @@ def episode_phase_metrics(steps: pd.DataFrame) -> dict[str, Any]:
         row[f"est_error_mm{suffix}"] = 1e3 * math.sqrt(squared[mask].mean()) if n else math.nan
         for name, values in nees.items():
             row[f"{name}{suffix}"] = float(values[mask].mean()) if n else math.nan
+        if "nees" in nees:
+            inside = nees["nees"][mask] <= _INSIDE_LIMIT
+            row[f"nees_inside{suffix}"] = float(inside.mean()) if n else math.nan
     return row
 
 
@@ -114,4 +132,8 @@ def summarize_phases(table: pd.DataFrame, confidence: float = 0.95) -> dict[str,
             out[f"{name}{suffix}"] = float(np.dot(n[some], mean)) / total if total else math.nan
             low, high = nees_band(total, dof, confidence)
             out[f"{name}{suffix}_low"], out[f"{name}{suffix}_high"] = low, high
+        if f"nees_inside{suffix}" in table:
+            share = table[f"nees_inside{suffix}"].to_numpy(dtype=float)[some]
+            pooled = float(np.dot(n[some], share)) / total if total else math.nan
+            out[f"nees_inside{suffix}"] = pooled
     return out

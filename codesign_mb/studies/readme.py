@@ -84,6 +84,7 @@ _TABLE_COLUMNS = (
     *(f"failures_{reason}" for reason in FAILURE_REASONS),
     *(f"est_error_mm_{phase}" for phase in PHASES),
     *(f"nees_{phase}{end}" for phase in PHASES for end in ("", "_low", "_high")),
+    *(f"nees_inside_{phase}" for phase in PHASES),
 )
 _FIG_CN_COLUMNS = (
     "sweep",

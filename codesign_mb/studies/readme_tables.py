@@ -257,6 +257,7 @@ def explain_table(rows: Sequence[Mapping[str, Any]]) -> str:
         "time to grasp",
         f"position error, mm ({' / '.join(PHASES)})",
         f"NEES ({' / '.join(PHASES)}; 95 % band of a consistent filter)",
+        "steps inside the 95 % ellipsoid",
     ]
     lines = []
     for r in rows:
@@ -271,6 +272,12 @@ def explain_table(rows: Sequence[Mapping[str, Any]]) -> str:
                 f"{_number(v, 1)} [{_number(lo, 2)}, {_number(hi, 2)}]"
                 for v, (lo, hi) in zip(nees, bands, strict=True)
             )
+        inside = [r.get(f"nees_inside_{p}") for p in PHASES]
+        inside_cell = (
+            " / ".join(f"{_number(100 * v, 0)} %" if _finite(v) else "" for v in inside)
+            if any(_finite(v) for v in inside)
+            else ""
+        )
         name = f"*{r['row']}*" if r.get("reference") else str(r["row"])
         grasp = r.get("mean_time_to_grasp_s")
         lines.append(
@@ -281,13 +288,16 @@ def explain_table(rows: Sequence[Mapping[str, Any]]) -> str:
                 f"{_number(grasp, 2)} s" if _finite(grasp) else "",
                 " / ".join(_number(r.get(f"est_error_mm_{p}"), 1) for p in PHASES),
                 nees_cell,
+                inside_cell,
             ]
         )
     intro = (
         "What explains these figures (same episodes): failures by reason, mean time to grasp "
         "(episodes that grasped), RMS error of the object position the controller acts on "
         "per phase, and the predictor's average normalised estimation error squared per phase "
-        "(position, 3 degrees of freedom; the band assumes independent steps, so it is narrow):"
+        "(position, 3 degrees of freedom; the band assumes independent steps, so it is narrow) "
+        "and the share of its steps with the true object inside its 95 % ellipsoid (0.95 for a "
+        "consistent filter; not carried by a few large errors as the mean is):"
     )
     return _paragraphs(intro, markdown_table(head, lines))
 
