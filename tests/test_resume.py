@@ -233,6 +233,17 @@ def _children(pid: int) -> list[int]:
     return found
 
 
+def _all_gone(pids: set[int], within_s: float = 5.0) -> bool:
+    """Whether every process of ``pids`` has exited within ``within_s`` (a worker or the
+    resource tracker, reparented when its driver died, needs a few milliseconds to see it)."""
+    deadline = time.monotonic() + within_s
+    while any(map(_alive, pids)):
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.05)
+    return True
+
+
 def _alive(pid: int) -> bool:
     try:
         stat = Path(f"/proc/{pid}/stat").read_text()
@@ -336,7 +347,7 @@ def test_ctrl_c_on_a_parallel_table_keeps_what_finished(
         f"interrupted: {kept} finished episodes kept in {out / '.records'}; rerun the same "
         "command to resume"
     ]
-    assert workers and not any(map(_alive, workers))
+    assert workers and _all_gone(workers)
     monkeypatch.setenv("CODESIGN_NO_PROGRESS", "1")
     calls = _count_episodes(monkeypatch)
     result = CliRunner().invoke(app, args)

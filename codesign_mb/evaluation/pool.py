@@ -26,6 +26,7 @@ import warnings
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
+from contextlib import contextmanager
 from multiprocessing import get_context
 from typing import Any, TypeVar
 
@@ -94,6 +95,23 @@ def _init_worker(initializer: Callable[..., None] | None, initargs: tuple[Any, .
         initializer(*initargs)
 
 
+@contextmanager
+def _starting_deaf() -> Iterator[None]:
+    """Ignore ``SIGINT`` while workers are started: a spawned process inherits an ignored
+    signal, so a Ctrl-C during its start-up (seconds of imports, when the other worker may have
+    finished episodes already) does not print a ``KeyboardInterrupt`` traceback; its
+    initializer then installs the quiet exit. The driver ignores Ctrl-C for the few
+    milliseconds the ``fork`` and ``exec`` take (only the main thread can set a handler)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
 def check_workers(workers: int | None, tasks: int) -> int:
     """Validated worker count: default one per CPU, at most ``tasks``, at least 1."""
     if workers is None:
@@ -125,13 +143,14 @@ def imap(
     pending = set(range(len(tasks)))
     restarts = 0
     while pending:
-        pool = ProcessPoolExecutor(
-            max_workers=n_workers,
-            mp_context=get_context("spawn"),
-            initializer=_init_worker,
-            initargs=(initializer, initargs),
-        )
-        futures: dict[Future[R], int] = {pool.submit(fn, *tasks[i]): i for i in sorted(pending)}
+        with _starting_deaf():  # the workers start (at the first submits) ignoring Ctrl-C
+            pool = ProcessPoolExecutor(
+                max_workers=n_workers,
+                mp_context=get_context("spawn"),
+                initializer=_init_worker,
+                initargs=(initializer, initargs),
+            )
+            futures: dict[Future[R], int] = {pool.submit(fn, *tasks[i]): i for i in sorted(pending)}
         finished = False
         try:
             remaining = set(futures)
