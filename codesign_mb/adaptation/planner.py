@@ -274,11 +274,10 @@ class QosPlanner:
 
     def _closing(self, held: NDArray[np.float64]) -> bool:
         """The fingers are closing (or closed): their width is below ``closing_width_m``."""
-        if self._width is None:
-            return False
         return self._finger_width(held) < self.closing_width_m
 
     def _finger_width(self, held: NDArray[np.float64]) -> float:
+        """The fingers' width (``inf`` for a layout without fingers: never closing)."""
         return math.inf if self._width is None else float(np.mean(held[self._width]))
 
     def _offset(self, held: NDArray[np.float64]) -> tuple[float, float]:
