@@ -169,9 +169,9 @@ HYBRID_FEATURES = ("predictor_std",)
 QOS_FEATURES = registry.kinds("qos_feature")
 """Feature kinds of the component registry, each built as ``factory(env, **options)``.
 
-A feature must be computable at the edge from what the QoS policy is given, ``(y, zeta)``
-(and its own state, e.g. a replica of a model-based predictor fed with the same stream), so
-that the deployed :class:`LearnedQosPolicy` is self-contained.
+A feature is computed from what the QoS policy is given, ``(y, zeta)`` (and its own state,
+e.g. a replica of a model-based predictor fed with the same stream), or, for ``belief``, from
+the robot's own estimator, which the closed loop binds to it (:meth:`LearnedQosPolicy.bind_belief`).
 """
 
 
@@ -313,6 +313,13 @@ class LearnedQosPolicy:
     def reset(self, *, seed: int | None = None) -> None:
         if self.features is not None:
             self.features.reset()
+
+    def bind_belief(self, belief: Any) -> None:
+        """Give features that read the robot's estimator (``belief``) that estimator; the
+        closed loop calls this with its estimator. Other features need none."""
+        bind = getattr(self.features, "bind_belief", None)
+        if bind is not None:
+            bind(belief)
 
     def request(self, observation: NDArray[np.float64], age: int) -> QosRequest:
         extra = None if self.features is None else self.features(observation, age)

@@ -271,6 +271,8 @@ def tune_threshold(
         raise ValueError(f"need 0 < low < high, got low={low}, high={high}")
     if not 0.0 <= target_success <= 1.0:
         raise ValueError(f"target_success must be in [0, 1], got {target_success}")
+    if isinstance(iterations, bool) or not isinstance(iterations, int) or iterations < 1:
+        raise ValueError(f"iterations must be an integer >= 1, got {iterations!r}")
     probes: list[ThresholdSearch] = []
     best = low
     lo, hi = math.log(low), math.log(high)

@@ -23,6 +23,7 @@ BENCHMARKS: dict[str, str] = {
     "loop": "codesign_mb.bench.loop:bench_loop",
     "mpc": "codesign_mb.bench.mpc:bench_mpc",
     "allocators": "codesign_mb.bench.allocators:bench_allocators",
+    "estimator": "codesign_mb.bench.estimator:bench_estimator",
 }
 """Benchmark name -> ``"module:function"``; the function is ``(*, repeats, seed) -> dict``."""
 

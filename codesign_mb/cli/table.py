@@ -74,7 +74,8 @@ def table_command(
                 "Which rows: model-free (the paper's Table I, 0.2 m/s), model-based (MPC, "
                 "predictor, rule QoS; 0.2 m/s) or all ({static, rule, SAC} QoS x {SAC + "
                 "MLP, MPC + predictor}, the mixed pairs; both belt speeds and the "
-                "variable belt)."
+                "variable belt) or learned (the realistic learned stack, stage by stage: "
+                "BC actor + GRU estimator + SAC QoS, each stage swapped for the model-based one)."
             ),
         ),
     ] = "model-free",

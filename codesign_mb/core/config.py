@@ -35,6 +35,7 @@ __all__ = [
     "FloatOrInf",
     "as_matrix",
     "check_range",
+    "check_writable",
     "coerce_value",
     "from_mapping",
     "load_config_file",
@@ -129,6 +130,31 @@ def check_range(
             raise ConfigError(
                 f"{name} must be <= {cap.value} (the cap on {cap.what}), got {show(v)}"
             )
+
+
+def check_writable(name: str, path: str | Path) -> None:
+    """Raise :class:`ConfigError` unless a file can be written at ``path``.
+
+    The nearest existing folder on the way (the parent, or the first ancestor a writer would
+    create the missing folders under) must take a new file: a temporary one is created there
+    and removed, which catches what permission bits do not (``/proc``, a read-only mount).
+    """
+    import tempfile
+
+    target = Path(path)
+    if target.is_dir():
+        raise ConfigError(f"{name} must be a file, got the folder {str(target)!r}")
+    folder = target.parent
+    while not folder.exists() and folder != folder.parent:
+        folder = folder.parent
+    try:
+        if not folder.is_dir():
+            raise OSError(f"{str(folder)!r} is not a folder")
+        with tempfile.NamedTemporaryFile(dir=folder, prefix=".codesign-check-"):
+            pass
+    except OSError as exc:
+        reason = exc.strerror or str(exc)
+        raise ConfigError(f"{name}: cannot write {str(target)!r} ({reason})") from None
 
 
 def from_mapping(cls: type[T], data: Mapping[str, Any], *, where: str = "") -> T:

@@ -18,6 +18,7 @@ controller ``scripted``       ``control.scripted.ScriptedPickController``
 controller ``toy_pick``       ``control.scripted.ToyPickController`` (toy plant only)
 estimator  ``none``           ``estimation.base.PassThroughEstimator`` (stale observation)
 estimator  ``mlp``/``lstm``   a learned estimator from ``checkpoint`` (``load_estimator``)
+estimator  ``sequence``       the Gaussian sequence estimator (``estimation.sequence``), likewise
 estimator  ``predictor``      ``estimation.predictor.DelayCompensatingPredictor``
 estimator  ``belt_imm``       ``estimation.belt_imm.BeltImmPredictor`` (switching belt, carried)
 qos        ``static``         ``adaptation.base.StaticQos`` (``options``)
@@ -31,6 +32,8 @@ qos_feat.  ``predictor_std``  ``adaptation.learned.PredictorStdFeature`` on a pr
                               (hybrid: a model-based replica at the edge)
 qos_feat.  ``held_history``   ``adaptation.model_free_features.HeldHistoryFeature`` (model-free:
                               ``t / T``, held-position differences, lift, from ``(y, zeta)``)
+qos_feat.  ``belief``         ``adaptation.belief_features.BeliefFeature``: the robot's estimate
+                              and its uncertainty (bound to the robot's estimator by the loop)
 plant      ``conveyor``       ``plants.conveyor.ConveyorPickPlace`` (``ConveyorConfig`` options)
 plant      ``toy``            ``plants.toy.ToyConveyor`` (``ToyConveyorConfig`` options)
 allocator  ``greedy``         ``wifi.allocators.GreedyEdfAllocator`` (the paper's, sec. 5)
@@ -142,6 +145,9 @@ KINDS: dict[str, dict[str, Kind]] = {
         "none": Kind("codesign_mb.estimation.base:PassThroughEstimator.from_env", takes_env=True),
         "mlp": Kind("codesign_mb.estimation.learned:load_estimator", checkpoint_keyword="path"),
         "lstm": Kind("codesign_mb.estimation.learned:load_estimator", checkpoint_keyword="path"),
+        "sequence": Kind(
+            "codesign_mb.estimation.learned:load_estimator", checkpoint_keyword="path"
+        ),
         "predictor": Kind(
             "codesign_mb.estimation.predictor:DelayCompensatingPredictor.from_env", takes_env=True
         ),
@@ -167,6 +173,7 @@ KINDS: dict[str, dict[str, Kind]] = {
             "codesign_mb.adaptation.model_free_features:HeldHistoryFeature.from_env"
         ),
         "predictor_std": Kind("codesign_mb.rollout.compose:predictor_std_feature"),
+        "belief": Kind("codesign_mb.adaptation.belief_features:BeliefFeature.from_env"),
     },
     "plant": {
         "conveyor": Kind(

@@ -345,7 +345,7 @@ _KINDS: dict[str, type[LearnedEstimator]] = {"mlp": MlpEstimator, "lstm": LstmEs
 
 
 def load_estimator(path: str | Path) -> LearnedEstimator:
-    """Load an estimator written by :meth:`LearnedEstimator.save` (MLP or LSTM)."""
+    """Load an estimator written by :meth:`LearnedEstimator.save` (MLP, LSTM or sequence)."""
     path = Path(path)
     if not path.is_file():
         raise ValueError(
@@ -354,6 +354,10 @@ def load_estimator(path: str | Path) -> LearnedEstimator:
     with reading_checkpoint(path, remedy="train it again with `codesign train b`"):
         blob = torch.load(path, map_location="cpu", weights_only=True)
         kind = blob.get("kind")
+        if kind == "sequence":  # its module builds on this one: imported here, not above
+            from codesign_mb.estimation.sequence import GaussianSequenceEstimator
+
+            return GaussianSequenceEstimator.from_blob(blob)
         if kind not in _KINDS:
             raise ValueError(f"it holds an unknown estimator kind {kind!r}")
         features = EstimatorFeatures(**blob["features"])

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import heapq
 from dataclasses import dataclass, field
-from typing import Protocol, runtime_checkable
+from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -42,6 +42,17 @@ class Packet:
 
     timestamp: int
     value: NDArray[np.float64]
+
+    def __post_init__(self) -> None:
+        stamp = self.timestamp
+        if isinstance(stamp, bool) or not isinstance(stamp, (int, np.integer)):
+            raise TypeError(f"Packet timestamp must be an integer step, got {stamp!r}")
+        if not isinstance(self.value, np.ndarray):  # the link's own packets already are
+            try:
+                value = np.array(self.value, dtype=float)
+            except (TypeError, ValueError):
+                raise TypeError(f"Packet value must be numbers, got {self.value!r}") from None
+            object.__setattr__(self, "value", value)
 
 
 @dataclass(frozen=True, slots=True)
@@ -107,7 +118,13 @@ class ObservationBuffer:
         self._seq = 0
         self._latest: Packet | None = None
         if prior is not None:
-            self._latest = Packet(PRIOR_TIMESTAMP, np.array(prior, dtype=float))
+            try:
+                held = np.array(prior, dtype=float)
+            except (TypeError, ValueError):
+                raise TypeError(f"prior must be numbers, got {prior!r}") from None
+            if not np.all(np.isfinite(held)):
+                raise ValueError(f"prior must be finite, got {prior!r}")
+            self._latest = Packet(PRIOR_TIMESTAMP, held)
 
     @property
     def latest(self) -> Packet | None:
@@ -181,6 +198,7 @@ class BernoulliLink:
     _t: int = field(init=False, default=0)
 
     def __post_init__(self) -> None:
+        _check_seed(self.seed)
         self.reset(seed=self.seed)
 
     @property
@@ -189,6 +207,7 @@ class BernoulliLink:
         return self._t
 
     def reset(self, *, seed: int | None = None, prior: ArrayLike | None = None) -> None:
+        _check_seed(seed)
         if seed is not None or not hasattr(self, "_rng"):
             self._rng = np.random.default_rng(seed if seed is not None else self.seed)
         self._buffer = ObservationBuffer(prior)
@@ -203,3 +222,13 @@ class BernoulliLink:
             self._buffer._schedule(Packet(t, value), t + qos.latency_steps)
         self._t = t + 1
         return self._buffer.receive(t, delivered=delivered, like=value)
+
+
+def _check_seed(seed: Any) -> None:
+    """A seed is ``None`` or a non-negative integer (not a bool: ``True`` is no seed)."""
+    if seed is None:
+        return
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)):
+        raise TypeError(f"seed must be a non-negative integer or None, got {seed!r}")
+    if seed < 0:
+        raise ValueError(f"seed must be >= 0, got {seed!r}")

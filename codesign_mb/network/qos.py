@@ -53,6 +53,8 @@ QosCost = Callable[[QosRequest], float]
 
 def reliability_cost(qos: QosRequest) -> float:
     """The paper's cost ``C(q) = q`` (``eq_robot``): requested reliability, latency free."""
+    if not isinstance(qos, QosRequest):
+        raise TypeError(f"qos must be a QosRequest, got {qos!r}")
     return qos.reliability
 
 
@@ -60,8 +62,10 @@ def reliability_cost(qos: QosRequest) -> float:
 class QosPolicy(Protocol):
     """Chooses the QoS of the packet sent at ``t`` from what was held at ``t - 1``.
 
-    ``(q_t, tau_t) = pi(y_{t-1}, zeta_{t-1})`` (``eq_q_pol``, ``eq_t_pol``). The policy runs at
-    the edge: it sees the remote observation and its age, not the robot's estimate.
+    ``(q_t, tau_t) = pi(y_{t-1}, zeta_{t-1})`` (``eq_q_pol``, ``eq_t_pol``). The policy sees the
+    remote observation and its age; one that also reads the robot's estimate (a learned policy
+    on the learned estimator's belief) has a ``bind_belief(estimator)`` method, which the closed
+    loop calls with the robot's estimator: that policy runs with the robot.
     """
 
     def reset(self, *, seed: int | None = None) -> None:

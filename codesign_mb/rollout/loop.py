@@ -122,6 +122,9 @@ class ClosedLoop:
         self._record: _Record | None = None
         self._object_errors = ObjectErrors.of(env, estimator) if record else None
         self._errors: ObjectErrors | None = None  # this episode's (the plant reports a phase)
+        bind = getattr(env.qos_policy, "bind_belief", None)
+        if bind is not None and estimator is not None:  # a QoS policy reading the robot's belief
+            bind(estimator)
 
     def reset(self, *, seed: int) -> dict[str, Any]:
         """Start an episode: plant, link, QoS policy, controller and estimator from ``seed``."""

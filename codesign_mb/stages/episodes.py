@@ -20,12 +20,15 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.stats import chi2
 
 from codesign_mb.control.base import Controller
 from codesign_mb.core.config import LATENCY_STEPS_CAP, check_range
 from codesign_mb.core.registry import ComponentSpec, PlantSpec, build, make_plant
 from codesign_mb.core.results import atomic_write
 from codesign_mb.estimation.base import Estimator
+from codesign_mb.estimation.consistency import has_covariance, nees
+from codesign_mb.evaluation.pool import imap, single_threaded_worker
 from codesign_mb.network.link import BernoulliLink
 from codesign_mb.network.qos import QosPolicy, QosRequest
 from codesign_mb.network.wrapper import LinkObservationWrapper
@@ -59,12 +62,15 @@ class DelayDistribution:
     Each episode draws its reliability ``q ~ U[reliability_low, reliability_high]``; each
     packet is delivered with probability ``q`` (Bernoulli loss, ``eq_d``) after a latency
     ``tau ~ U{latency_low, ..., latency_high}`` steps. The age ``zeta_t`` follows from both.
+    With probability ``perfect_probability`` an episode instead has the perfect link (``q = 1``,
+    ``tau = 0``, the tables' oracle), which a uniform ``q`` almost never draws.
     """
 
     reliability_low: float = 0.0
     reliability_high: float = 1.0
     latency_low: int = 0
     latency_high: int = 4
+    perfect_probability: float = 0.0
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.reliability_low <= self.reliability_high <= 1.0:
@@ -78,6 +84,7 @@ class DelayDistribution:
                 f"{self.latency_low}, {self.latency_high}"
             )
         check_range("latency_high", self.latency_high, cap=LATENCY_STEPS_CAP)
+        check_range("perfect_probability", self.perfect_probability, ge=0.0, le=1.0)
 
 
 class RandomQos:
@@ -87,15 +94,22 @@ class RandomQos:
         self.distribution = distribution
         self._rng = np.random.default_rng(seed)
         self.reliability = distribution.reliability_high
+        self.perfect = False
 
     def reset(self, *, seed: int | None = None) -> None:
         if seed is not None:
             self._rng = np.random.default_rng(seed)
         d = self.distribution
         self.reliability = float(self._rng.uniform(d.reliability_low, d.reliability_high))
+        # Drawn only when asked for, so the streams of the uniform recipe stay as they were.
+        self.perfect = bool(d.perfect_probability and self._rng.random() < d.perfect_probability)
+        if self.perfect:
+            self.reliability = 1.0
 
     def request(self, observation: NDArray[np.float64], age: int) -> QosRequest:
         d = self.distribution
+        if self.perfect:
+            return QosRequest(1.0, 0)
         tau = int(self._rng.integers(d.latency_low, d.latency_high + 1))
         return QosRequest(self.reliability, tau)
 
@@ -222,6 +236,7 @@ def collect_episodes(
     episodes: int,
     seed: int,
     behaviour: Estimator | None = None,
+    workers: int = 1,
 ) -> EpisodeData:
     """Roll ``controller`` out through a Bernoulli link with ``qos_policy`` and record it.
 
@@ -230,7 +245,31 @@ def collect_episodes(
     instance is used as given. ``behaviour`` is the estimator the controller acts through
     (``None``: ideal control on the true state, i.e. the ideal trajectories). Episode ``i``
     is seeded from ``SeedSequence(seed)`` (:func:`~codesign_mb.stages.training.stage_seeds`).
+    With ``workers > 1`` the episodes run in the process pool, in chunks of consecutive seeds
+    (each worker builds its own controller and copies of the policy and the behaviour): the
+    data are the same as with one worker, in the same order.
     """
+    seeds = stage_seeds(seed, episodes)
+    if workers <= 1:
+        return _collect(plant, controller, qos_policy, seeds, behaviour)
+    parts = max(1, min(len(seeds), 4 * workers))
+    chunks = [list(c) for c in np.array_split(np.asarray(seeds, dtype=np.int64), parts) if len(c)]
+    tasks = [(plant, controller, qos_policy, [int(s) for s in c], behaviour) for c in chunks]
+    results = dict(imap(_collect, tasks, workers=workers, initializer=single_threaded_worker))
+    data = EpisodeData()
+    for i in range(len(tasks)):
+        data.extend(results[i])
+    return data
+
+
+def _collect(
+    plant: PlantSpec,
+    controller: ComponentSpec | Controller,
+    qos_policy: QosPolicy,
+    seeds: list[int],
+    behaviour: Estimator | None,
+) -> EpisodeData:
+    """The episodes of ``seeds``, one after the other (see :func:`collect_episodes`)."""
     env = LinkObservationWrapper(make_plant(plant), BernoulliLink(), qos_policy)
     if isinstance(controller, ComponentSpec):
         controller = build("controller", controller, env)
@@ -239,7 +278,7 @@ def collect_episodes(
     )
     loop = ClosedLoop(env, behaviour, controller, observer=recorder, record=False)
     data = EpisodeData()
-    for s in stage_seeds(seed, episodes):
+    for s in seeds:
         info = loop.reset(seed=s)
         assert loop.observation is not None
         recorder.start(loop.observation, info)
@@ -268,23 +307,34 @@ def estimator_mse(
     where the packet carries none) the velocity's RMSE, for an estimator whose output has it.
     Both are also given per phase of :data:`~codesign_mb.plants.phases.PHASES`
     (``rmse_position_<phase>_m``, ``rmse_velocity_<phase>_mps``, ``steps_<phase>``): the
-    phases have different dynamics, and an error matters most while grasping.
+    phases have different dynamics, and an error matters most while grasping. An estimator
+    exposing its Gaussian (``state``, ``covariance``, position first) also gets
+    ``coverage_position`` (and ``coverage_position_<phase>``): the share of steps with the true
+    position inside its 95 % ellipsoid, the tables' ``nees_inside``.
     """
     sq, n = 0.0, 0
     parts = {"position": position, "velocity": velocity}
     sums = {name: np.zeros(len(PHASES) + 1) for name, where in parts.items() if where is not None}
+    inside = np.zeros(len(PHASES) + 1)
+    gaussian = position is not None
     counts = np.zeros(len(PHASES) + 1)
     remote_dim = remote.stop - remote.start
     phases = data.phase if len(data.phase) == len(data) else [None] * len(data)
     for nets, prevs, truth, phase in zip(
         data.networked, data.prev_actions, data.truth, phases, strict=True
     ):
-        est = _estimates(estimator, nets, prevs)
+        est, beliefs = _estimates(estimator, nets, prevs)
         sq += float(np.sum((est[:, remote] - truth[:, :remote_dim]) ** 2))
         n += len(est)
         labels = np.full(len(est), NOT_SPAWNED) if phase is None else np.asarray(phase)
         masks = [np.ones(len(est), dtype=bool), *(labels == k for k in range(len(PHASES)))]
         counts += [m.sum() for m in masks]
+        gaussian = gaussian and beliefs is not None
+        if gaussian and position is not None and beliefs is not None:
+            cols = slice(position.start - remote.start, position.stop - remote.start)
+            means, covariances = beliefs
+            ok = nees(means[:, :3] - truth[:, cols], covariances[:, :3, :3]) <= _INSIDE_LIMIT
+            inside += [float(ok[m].sum()) for m in masks]
         for name in list(sums):
             where = parts[name]
             assert where is not None
@@ -294,16 +344,37 @@ def estimator_mse(
             cols = slice(where.start - remote.start, where.stop - remote.start)
             err = np.sum((est[:, where] - truth[:, cols]) ** 2, axis=1)
             sums[name] += [float(err[m].sum()) for m in masks]
-    return _mse_summary(sq / max(n, 1), sums, counts)
+    out = _mse_summary(sq / max(n, 1), sums, counts)
+    if gaussian and n:
+        out["coverage_position"] = float(inside[0] / max(counts[0], 1))
+        for k, name in enumerate(PHASES, start=1):
+            if counts[k]:
+                out[f"coverage_position_{name}"] = float(inside[k] / counts[k])
+    return out
 
 
-def _estimates(estimator: Any, nets: np.ndarray, prevs: np.ndarray) -> NDArray[np.float64]:
-    """The estimator's outputs along one recorded episode, as a rollout calls it."""
+_INSIDE_LIMIT = float(chi2.ppf(0.95, 3))
+"""The 95 % ellipsoid of a 3-D position: its NEES at most this chi-square quantile."""
+
+
+def _estimates(
+    estimator: Any, nets: np.ndarray, prevs: np.ndarray
+) -> tuple[NDArray[np.float64], tuple[NDArray[np.float64], NDArray[np.float64]] | None]:
+    """The estimator's outputs along one recorded episode, as a rollout calls it, and its
+    Gaussian (means, covariances) per step where it exposes one."""
     nets64 = np.asarray(nets, dtype=np.float64)
     estimates = [estimator.reset(nets64[0])]
-    for t in range(1, len(nets64)):
-        estimates.append(estimator.estimate(nets64[t], np.asarray(prevs[t], dtype=np.float64)))
-    return np.asarray(estimates)
+    gaussian = has_covariance(estimator)
+    means, covariances = [], []
+    for t in range(len(nets64)):
+        if t:
+            action = np.asarray(prevs[t], dtype=np.float64)
+            estimates.append(estimator.estimate(nets64[t], action))
+        if gaussian:
+            means.append(np.asarray(estimator.state, dtype=float))
+            covariances.append(np.asarray(estimator.covariance, dtype=float))
+    beliefs = (np.asarray(means), np.asarray(covariances)) if gaussian else None
+    return np.asarray(estimates), beliefs
 
 
 def _mse_summary(mse: float, sums: dict[str, np.ndarray], counts: np.ndarray) -> dict[str, float]:

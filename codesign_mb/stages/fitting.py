@@ -21,6 +21,11 @@ from codesign_mb.estimation.learned import (
     LstmEstimator,
     MlpEstimator,
 )
+from codesign_mb.estimation.sequence import (
+    GaussianSequenceEstimator,
+    SequenceFeatures,
+    sequence_features,
+)
 from codesign_mb.stages.episodes import EpisodeData, estimates_velocity
 from codesign_mb.stages.training import (
     BUFFER_CAP,
@@ -42,6 +47,7 @@ class EstimatorTraining:
     batch_size: int = 256
     sequence_batch_size: int = 16
     weight_decay: float = 0.0
+    cosine_decay: bool = False  # anneal the learning rate to a tenth along the epochs
 
     def __post_init__(self) -> None:
         require_at_least(self, 1, "epochs", cap=EPOCHS_CAP)
@@ -52,9 +58,10 @@ class EstimatorTraining:
 
 def _arrays(estimator: LearnedEstimator, data: EpisodeData) -> tuple[list[np.ndarray], list]:
     f = estimator.features
+    featurise = f.sequence if isinstance(f, SequenceFeatures) else f
     feats, residuals = [], []
     for nets, prevs, truth in zip(data.networked, data.prev_actions, data.truth, strict=True):
-        feats.append(f(nets, prevs))
+        feats.append(featurise(nets, prevs))
         residuals.append(truth - f.baseline(nets))
     return feats, residuals
 
@@ -87,18 +94,30 @@ def fit_estimator(
     optimiser = torch.optim.Adam(
         net.parameters(), lr=settings.learning_rate, weight_decay=settings.weight_decay
     )
-    recurrent = isinstance(estimator, LstmEstimator)
+    recurrent = isinstance(estimator, (LstmEstimator, GaussianSequenceEstimator))
+    gaussian = isinstance(estimator, GaussianSequenceEstimator)
     val_arrays = _arrays(estimator, val) if val is not None and len(val) else None
+    schedule = (
+        torch.optim.lr_scheduler.CosineAnnealingLR(
+            optimiser, settings.epochs, eta_min=settings.learning_rate / 10
+        )
+        if settings.cosine_decay
+        else None
+    )
     curve = []
     net.train()
     for epoch in progress(range(settings.epochs), total=settings.epochs, description=description):
         if recurrent:
-            loss = _lstm_epoch(net, optimiser, feats, residuals, settings, rng)
+            loss = _sequence_epoch(net, optimiser, feats, residuals, settings, rng)
         else:
             loss = _mlp_epoch(net, optimiser, feats, residuals, settings, gen)
+        if schedule is not None:
+            schedule.step()
         point = {"epoch": epoch + 1, "train_loss": loss}
         if val_arrays is not None:
             point["val_loss"] = _loss(net, *val_arrays, recurrent=recurrent)
+            if gaussian:
+                point["val_rmse"] = _loss(net, *val_arrays, recurrent=True, metric="rmse")
         curve.append(point)
     net.eval()
     return curve
@@ -134,13 +153,29 @@ def _pad(seqs: Sequence[np.ndarray]) -> tuple[torch.Tensor, torch.Tensor]:
     return torch.as_tensor(out), torch.as_tensor(mask)
 
 
-def _masked_loss(net, x, y, mask) -> torch.Tensor:
-    pred, _ = net(x)
-    per_step = (((pred - y) / net.out_std) ** 2).mean(-1)
-    return (per_step * mask).sum() / mask.sum()
+NLL_BETA = 0.5
+"""The beta of the beta-NLL (Seitzer et al., ICLR 2022): each step's Gaussian NLL weighted by
+its (detached) variance to the beta, so the mean is not neglected where the variance is large."""
 
 
-def _lstm_epoch(net, optimiser, feats, residuals, settings, rng) -> float:
+def _masked_loss(net, x, y, mask, metric: str = "loss") -> torch.Tensor:
+    """The masked mean over steps: the normalised MSE (point nets) or the beta-NLL (Gaussian
+    nets); ``metric="rmse"``: the RMS error of the first three entries in physical units."""
+    out = net(x)
+    target = y / net.out_std
+    if metric == "rmse":
+        err = ((out[0] * net.out_std if len(out) == 3 else out[0]) - y)[..., :3]
+        return ((err**2).sum(-1) * mask).sum().div(mask.sum()).sqrt()
+    if len(out) == 2:  # point estimate: the MSE of eq_control_estimation
+        per_step = ((out[0] - y) / net.out_std) ** 2
+    else:  # Gaussian: beta-NLL in units of the training spread
+        mean, log_var = out[0], out[1]
+        var = log_var.exp()
+        per_step = 0.5 * (log_var + (target - mean) ** 2 / var) * var.detach() ** NLL_BETA
+    return (per_step.mean(-1) * mask).sum() / mask.sum()
+
+
+def _sequence_epoch(net, optimiser, feats, residuals, settings, rng) -> float:
     order = rng.permutation(len(feats))
     total, count = 0.0, 0
     for start in range(0, len(order), settings.sequence_batch_size):
@@ -158,13 +193,13 @@ def _lstm_epoch(net, optimiser, feats, residuals, settings, rng) -> float:
     return total / max(count, 1.0)
 
 
-def _loss(net, feats, residuals, *, recurrent: bool) -> float:
+def _loss(net, feats, residuals, *, recurrent: bool, metric: str = "loss") -> float:
     net.eval()
     with torch.no_grad():
         if recurrent:
             x, mask = _pad(feats)
             y, _ = _pad(residuals)
-            value = float(_masked_loss(net, x, y, mask))
+            value = float(_masked_loss(net, x, y, mask, metric))
         else:
             x = torch.as_tensor(np.concatenate(feats))
             y = torch.as_tensor(np.concatenate(residuals))
@@ -174,13 +209,13 @@ def _loss(net, feats, residuals, *, recurrent: bool) -> float:
 
 
 def new_estimator(
-    kind: str, env: Any, *, hidden: Any, age_scale: float, seed: int
+    kind: str, env: Any, *, hidden: Any, age_scale: float, seed: int, cell: str = "gru"
 ) -> LearnedEstimator:
     """An untrained estimator of ``kind`` for the plant ``env``.
 
     Where the plant's ``state_layout`` has an ``object_vel`` its observation lacks (the packet
     carries the position only), the estimator also estimates the velocity
-    (:func:`estimates_velocity`).
+    (:func:`estimates_velocity`). ``cell`` is the recurrent cell of kind ``sequence``.
     """
     plant = env.unwrapped
     remote = plant.remote_slice
@@ -195,4 +230,8 @@ def new_estimator(
     )
     if kind == "mlp":
         return MlpEstimator.create(features, hidden=tuple(hidden), seed=seed)
+    if kind == "sequence":
+        gripper = (getattr(plant, "observation_layout", None) or {}).get("gripper_pos")
+        seq = sequence_features(features, -1 if gripper is None else int(gripper.start))
+        return GaussianSequenceEstimator.create(seq, hidden=int(hidden), cell=cell, seed=seed)
     return LstmEstimator.create(features, hidden=int(hidden), seed=seed)

@@ -162,6 +162,9 @@ class QosAdaptationEnv(gym.Env):
         self.controller = controller
         self.loop = ClosedLoop(self.wrapped, estimator, controller, record=False)
         self.features = features
+        bind = getattr(features, "bind_belief", None)
+        if bind is not None:  # features reading the robot's belief read this estimator
+            bind(estimator)
         unwrapped = plant.unwrapped
         horizon = getattr(unwrapped, "horizon", None)
         if horizon is None:

@@ -33,10 +33,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from codesign_mb.core.config import EPISODES_CAP, check_range
+from codesign_mb.core.config import EPISODES_CAP, WORKERS_CAP, check_range
 from codesign_mb.core.registry import ComponentSpec, PlantSpec, build, make_plant
 from codesign_mb.estimation.base import Estimator
 from codesign_mb.estimation.learned import LearnedEstimator, load_estimator
+from codesign_mb.estimation.sequence import CELLS
 from codesign_mb.stages.episodes import (
     DelayDistribution,
     EpisodeData,
@@ -59,7 +60,10 @@ from codesign_mb.stages.training import (
     write_training_record,
 )
 
-__all__ = ["StageBConfig", "train_stage_b"]
+__all__ = ["ESTIMATOR_KINDS", "StageBConfig", "train_stage_b"]
+
+ESTIMATOR_KINDS = ("mlp", "lstm", "sequence")
+"""The learned estimators stage B trains (their order fixes each one's DAgger seeds)."""
 
 
 @dataclass(frozen=True)
@@ -78,15 +82,23 @@ class StageBConfig:
         The QoS distribution ``T`` (``eq_control_estimation``): per-episode reliability and
         per-packet latency, both uniform (the paper's recipe).
     kinds:
-        Estimators to train: ``"mlp"`` and/or ``"lstm"``.
+        Estimators to train: ``"mlp"``, ``"lstm"`` (point estimates, the paper's) and/or
+        ``"sequence"`` (the Gaussian sequence estimator, :mod:`codesign_mb.estimation.sequence`).
     train_episodes, val_episodes:
         Episodes collected with the controller on the true state, for fitting and held out.
     dagger_rounds, dagger_episodes:
         Extra rounds collected with the controller acting on the estimator being trained.
-    mlp_hidden, lstm_hidden:
+    mlp_hidden, lstm_hidden, sequence_hidden:
         Network sizes.
-    mlp, lstm:
-        Optimiser settings of each.
+    sequence_cell:
+        The sequence estimator's recurrent cell (``"gru"`` or ``"lstm"``).
+    mlp, lstm, sequence:
+        Optimiser settings of each (the first fit).
+    sequence_dagger:
+        The sequence estimator's settings in the DAgger rounds (continuing from the last fit;
+        the MLP and LSTM repeat their own).
+    workers:
+        Processes collecting the episodes (the data do not depend on it).
     age_scale:
         The age enters the networks as ``zeta / age_scale``.
     compare:
@@ -110,16 +122,33 @@ class StageBConfig:
     lstm_hidden: int = 64
     mlp: EstimatorTraining = field(default_factory=EstimatorTraining)
     lstm: EstimatorTraining = field(default_factory=lambda: EstimatorTraining(epochs=60))
+    sequence_hidden: int = 128
+    sequence_cell: str = "gru"
+    sequence: EstimatorTraining = field(
+        default_factory=lambda: EstimatorTraining(
+            epochs=60, sequence_batch_size=32, cosine_decay=True
+        )
+    )
+    sequence_dagger: EstimatorTraining = field(
+        default_factory=lambda: EstimatorTraining(
+            epochs=30, learning_rate=5e-4, sequence_batch_size=32, cosine_decay=True
+        )
+    )
+    workers: int = 1
     age_scale: float = 10.0
     compare: tuple[ComponentSpec, ...] = (ComponentSpec("none"), ComponentSpec("predictor"))
     seed: int = 0
 
     def __post_init__(self) -> None:
-        bad = [k for k in self.kinds if k not in ("mlp", "lstm")]
+        bad = [k for k in self.kinds if k not in ESTIMATOR_KINDS]
         if bad or not self.kinds:
             raise ValueError(
-                f"kinds must be a non-empty subset of ('mlp', 'lstm'), got {self.kinds}"
+                f"kinds must be a non-empty subset of {ESTIMATOR_KINDS}, got {self.kinds}"
             )
+        if self.sequence_cell not in CELLS:
+            raise ValueError(f"sequence_cell must be one of {CELLS}, got {self.sequence_cell!r}")
+        check_range("sequence_hidden", self.sequence_hidden, ge=1, cap=WIDTH_CAP)
+        check_range("workers", self.workers, ge=1, cap=WORKERS_CAP)
         require_at_least(self, 1, "train_episodes", "val_episodes", cap=EPISODES_CAP)
         require_at_least(self, 0, "dagger_rounds", "dagger_episodes", cap=EPISODES_CAP)
         check_range("mlp_hidden", self.mlp_hidden, ge=1, cap=WIDTH_CAP)
@@ -156,6 +185,7 @@ class _Collection:
                 episodes=episodes,
                 seed=seed,
                 behaviour=behaviour,
+                workers=self.config.workers,
             ),
         )
         self.wall_time_s += time.perf_counter() - started
@@ -251,16 +281,23 @@ def _train_estimator(
     ckpt = work_dir / f"{kind}_round{config.dagger_rounds}.pt"
     if resume and ckpt.is_file():
         return load_estimator(ckpt)
-    hidden = config.mlp_hidden if kind == "mlp" else config.lstm_hidden
-    settings = config.mlp if kind == "mlp" else config.lstm
+    hidden = {"mlp": config.mlp_hidden, "lstm": config.lstm_hidden}.get(
+        kind, config.sequence_hidden
+    )
+    settings = {"mlp": config.mlp, "lstm": config.lstm}.get(kind, config.sequence)
     estimator = new_estimator(
-        kind, probe, hidden=hidden, age_scale=config.age_scale, seed=config.seed
+        kind,
+        probe,
+        hidden=hidden,
+        age_scale=config.age_scale,
+        seed=config.seed,
+        cell=config.sequence_cell,
     )
     data = EpisodeData().extend(train0)
     curves.setdefault(kind, [])
     for round_ in range(config.dagger_rounds + 1):
         if round_ > 0:
-            seed = config.seed + 100 * round_ + (1 if kind == "lstm" else 0)
+            seed = config.seed + 100 * round_ + ESTIMATOR_KINDS.index(kind)
             name = f"train_{kind}_round{round_}"
             data.extend(collect(name, config.dagger_episodes, seed, behaviour=estimator))
         round_ckpt = work_dir / f"{kind}_round{round_}.pt"
@@ -271,7 +308,7 @@ def _train_estimator(
             estimator,
             data,
             val,
-            settings,
+            config.sequence_dagger if kind == "sequence" and round_ else settings,
             seed=config.seed + round_,
             fit_normalisation=round_ == 0,
             progress=progress,

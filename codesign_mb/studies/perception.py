@@ -30,7 +30,13 @@ import pandas as pd
 from numpy.typing import NDArray
 
 from codesign_mb.control.scripted import ScriptedPickController
-from codesign_mb.core.config import EPISODES_CAP, SEED_CAP, STEPS_CAP, check_range
+from codesign_mb.core.config import (
+    EPISODES_CAP,
+    SEED_CAP,
+    STEPS_CAP,
+    check_range,
+    check_writable,
+)
 from codesign_mb.plants.camera_perception import (
     LIFTED_M,
     CameraPerception,
@@ -279,8 +285,10 @@ def calibrate(
 ) -> dict[str, Any]:
     """Run the camera path, fit the calibration, write it to ``out``; return its summary."""
     check_range("sweep_frames", sweep_frames, ge=1, cap=STEPS_CAP)
-    check_range("episodes", episodes_per_speed, ge=0, cap=EPISODES_CAP)
+    # The miss rate and the errors in motion come from the episodes: at least one per speed.
+    check_range("episodes", episodes_per_speed, ge=1, cap=EPISODES_CAP)
     check_range("seed", seed, ge=0, cap=SEED_CAP)
+    check_writable("out", out)
     if object_kind not in OBJECTS:
         raise ValueError(f"object must be one of {', '.join(OBJECTS)}, got {object_kind!r}")
     rows = camera_path_rows(

@@ -25,7 +25,7 @@ from numpy.typing import NDArray
 
 from codesign_mb.adaptation.base import StaticQos
 from codesign_mb.control.scripted import ScriptedPickController
-from codesign_mb.core.config import STEPS_CAP, check_range, from_mapping
+from codesign_mb.core.config import STEPS_CAP, check_range, check_writable, from_mapping
 from codesign_mb.network import BernoulliLink, LinkObservationWrapper
 from codesign_mb.plants.conveyor import ConveyorConfig, ConveyorPickPlace
 from codesign_mb.robot.camera import EDGE_CAMERA, Detection, EdgeCamera
@@ -63,6 +63,7 @@ class RenderConfig:
             raise ValueError(f"env must be a ConveyorConfig table, got {self.env!r}")
         if Path(self.out).suffix.lower() not in _FORMATS:
             raise ValueError(f"out must end in .gif or .mp4, got {self.out!r}")
+        check_writable("out", self.out)
         if not isinstance(self.show_detection, bool):
             raise ValueError(f"show_detection must be a bool, got {self.show_detection!r}")
         if self.show_detection and self.env.render_camera != EDGE_CAMERA:

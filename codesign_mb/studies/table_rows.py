@@ -326,10 +326,33 @@ def all_rows() -> tuple[TableRow, ...]:
     )
 
 
+LEARNED_CODESIGN_ROW = "BC actor + GRU estimator, model-free SAC QoS (co-design)"
+"""The learned stack of the realistic scenario (issue 30): stage A's behaviour clone behind the
+stage-B Gaussian sequence estimator, stage C's SAC QoS policy on that estimator's belief."""
+
+_BC_REALISTIC = ComponentSpec("bc", "checkpoints/stage_a_sequence_realistic/bc.zip")
+_SEQUENCE = ComponentSpec("sequence", "checkpoints/stage_b_sequence_realistic/sequence.pt")
+_LEARNED_QOS = ComponentSpec("learned", "checkpoints/stage_c_learned_realistic")
+
+
+def learned_rows() -> tuple[TableRow, ...]:
+    """The learned stack on ``realistic`` stage by stage: each row swaps one stage with the
+    model-based one, so a reader sees which learned stage costs what (the references add
+    each stack's blind, oracle and static rows and random at each row's budget)."""
+    return (
+        TableRow(LEARNED_CODESIGN_ROW, _BC_REALISTIC, _SEQUENCE, _LEARNED_QOS),
+        TableRow("BC actor + GRU estimator, static QoS", _BC_REALISTIC, _SEQUENCE, _STATIC),
+        TableRow("MPC + GRU estimator, model-free SAC QoS", _MPC_GATED, _SEQUENCE, _LEARNED_QOS),
+        TableRow("BC actor + belt IMM, QoS planner", _BC_REALISTIC, _BELT_IMM, _planner()),
+        TableRow(PLANNER_ROW, _MPC_GATED, _BELT_IMM, _planner()),
+    )
+
+
 PIPELINES: dict[str, Callable[[], tuple[TableRow, ...]]] = {
     "model-free": model_free_rows,
     "model-based": model_based_rows,
     "all": all_rows,
+    "learned": learned_rows,
 }
 """Pipeline name -> its default rows."""
 
@@ -337,13 +360,14 @@ PIPELINE_PLANTS: dict[str, tuple[str, ...]] = {
     "model-free": ("0.2",),
     "model-based": ("realistic",),
     "all": ("realistic", "0.2", "0.6", "variable"),
+    "learned": ("realistic",),
 }
 """Pipeline name -> its default plants (keys of :data:`PLANT_PRESETS` or scenario names): the
 benchmark's ``realistic`` scenario; the paper's Table I (``model-free``) at 0.2 m/s, the plant
 its shipped checkpoints were trained on (they cannot read the realistic packet)."""
 
 _LEARNED_CONTROLLERS = ("sac", "bc")
-_LEARNED_ESTIMATORS = ("mlp", "lstm")
+_LEARNED_ESTIMATORS = ("mlp", "lstm", "sequence")
 _MODEL_BASED = ("mpc", "predictor", "belt_imm", "scripted", "toy_pick")
 
 

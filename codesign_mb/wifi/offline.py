@@ -312,9 +312,11 @@ def offline_optimum(trace: Trace, *, solver: str = "highs") -> OfflineResult:
         ``"highs"`` (exact simplex/IPM, default), ``"clarabel"`` (interior point) or ``"osqp"``
         (first order; approximate on LPs).
     """
-    solver = solver.lower()
-    if solver not in LP_SOLVERS:
+    if not isinstance(solver, str) or solver.lower() not in LP_SOLVERS:
         raise ValueError(f"solver must be one of {LP_SOLVERS}, got {solver!r}")
+    solver = solver.lower()
+    if not isinstance(trace, Trace):
+        raise TypeError(f"trace must be a Trace, got {type(trace).__name__}")
     lp = build_offline_lp(trace)
     start = time.perf_counter()
     value, status = _solve(lp, solver)
