@@ -166,12 +166,15 @@ def test_the_closed_loop_binds_the_robots_estimator_to_belief_features(fitted) -
     loop.reset(seed=3)
     beliefs = []
     for _ in range(5):
-        beliefs.append((est.state.copy(), np.diag(est.covariance).copy()))
+        beliefs.append((est.state.copy(), np.diag(est.covariance).copy(), est.output.copy()))
         loop.step()
     # the request of step t + 1 reads the estimate made at step t
-    for (mean, var), seen in zip(beliefs, qos.seen[1:], strict=False):
+    assert feature.dim == 17  # the toy has a gripper: its relative position and the fingers
+    for (mean, var, out), seen in zip(beliefs, qos.seen[1:], strict=False):
         np.testing.assert_allclose(seen[1:7], np.log10(np.sqrt(var[:6]) / feature._scales))
         np.testing.assert_allclose(seen[7:10], mean[3:6] / feature.speed_scale_mps)
+        np.testing.assert_allclose(seen[13:16], (mean[:3] - out[0:3]) / feature.position_scale_m)
+        np.testing.assert_allclose(seen[16], out[6] / feature.finger_scale_m)
     np.testing.assert_allclose(qos.seen[0][1:7], feature._prior)  # the reset's: the prior
     with pytest.raises(ValueError, match="state and covariance"):
         ClosedLoop(env, PassThroughEstimator(), ToyPickController())

@@ -11,7 +11,11 @@ do) and gives, for the next request:
 * ``log10(std_i / scale)`` of each estimated entry's standard deviation (position in m over
   ``position_scale_m``, velocity in m/s over ``speed_scale_mps``);
 * the estimated velocity over ``speed_scale_mps``;
-* the estimate's offset from the held position ``x_hat - y`` over ``position_scale_m``.
+* the estimate's offset from the held position ``x_hat - y`` over ``position_scale_m``;
+* on a plant with a gripper (``gripper``, ``finger``): the estimated object relative to the
+  gripper ``x_hat - g`` over ``position_scale_m`` and the finger opening over ``finger_scale_m``,
+  read from the estimator's ``output`` (the controller's input, the robot's own sensors in it):
+  how close the grasp is, which decides when a packet matters.
 
 Bound to the learned estimator it is the model-free row's feature (no Kalman or IMM anywhere);
 bound to a filter it would be a hybrid one. At the first request of an episode (made with the
@@ -38,9 +42,13 @@ class Belief(Protocol):
     @property
     def covariance(self) -> NDArray[np.float64]: ...
 
+    @property
+    def output(self) -> NDArray[np.float64]: ...
+
 
 class BeliefFeature:
-    """The belief features (see the module docstring); ``dim = 1 + 6 + 3 + 3``.
+    """The belief features (see the module docstring); ``dim = 1 + 6 + 3 + 3`` (``+ 3 + 1``
+    with a gripper).
 
     Parameters
     ----------
@@ -52,6 +60,11 @@ class BeliefFeature:
         Scales of the position and velocity entries.
     prior_std_m:
         The standard deviation reported before the first belief (every entry, in its scale).
+    gripper, finger:
+        Where the gripper position (3) and the finger opening (1) are in the estimator's
+        ``output``, or ``None`` (no gripper features).
+    finger_scale_m:
+        Scale of the finger opening.
 
     Examples
     --------
@@ -67,8 +80,6 @@ class BeliefFeature:
     [0.1, -0.7, 0.6, 0.2]
     """
 
-    dim = 13
-
     def __init__(
         self,
         position: slice,
@@ -77,6 +88,9 @@ class BeliefFeature:
         position_scale_m: float = 0.05,
         speed_scale_mps: float = 0.5,
         prior_std_m: float = 0.5,
+        gripper: slice | None = None,
+        finger: slice | None = None,
+        finger_scale_m: float = 0.08,
     ) -> None:
         if int(horizon) != horizon or horizon < 1:
             raise ValueError(f"horizon must be an integer >= 1, got {horizon!r}")
@@ -84,12 +98,18 @@ class BeliefFeature:
             ("position_scale_m", position_scale_m),
             ("speed_scale_mps", speed_scale_mps),
             ("prior_std_m", prior_std_m),
+            ("finger_scale_m", finger_scale_m),
         ):
             if not (isinstance(value, (int, float)) and np.isfinite(value) and value > 0):
                 raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
         if position.stop - position.start != 3:
             raise ValueError(f"position must have 3 entries, got {position}")
+        if (gripper is None) != (finger is None):
+            raise ValueError("gripper and finger go together (both slices or both None)")
         self.position = position
+        self.gripper, self.finger = gripper, finger
+        self.finger_scale_m = float(finger_scale_m)
+        self.dim = 13 + (4 if gripper is not None else 0)
         self.horizon = int(horizon)
         self.position_scale_m = float(position_scale_m)
         self.speed_scale_mps = float(speed_scale_mps)
@@ -106,7 +126,10 @@ class BeliefFeature:
         if "object_pos" not in layout or getattr(plant, "horizon", None) is None:
             raise ValueError("belief features need a plant with object_pos and a horizon")
         start = layout["object_pos"].start - plant.remote_slice.start
-        return cls(slice(start, start + 3), horizon=int(plant.horizon), **options)
+        hand = {"gripper": layout.get("gripper_pos"), "finger": layout.get("finger_width")}
+        if hand["gripper"] is None or hand["finger"] is None:
+            hand = {}
+        return cls(slice(start, start + 3), horizon=int(plant.horizon), **hand, **options)
 
     def bind_belief(self, belief: Any) -> None:
         """Read ``belief`` (the robot's estimator) from now on."""
@@ -114,6 +137,11 @@ class BeliefFeature:
             raise ValueError(
                 f"belief features need an estimator exposing state and covariance, got "
                 f"{type(belief).__name__} (use the learned kind 'sequence' or a filter)"
+            )
+        if self.gripper is not None and getattr(belief, "output", None) is None:
+            raise ValueError(
+                f"belief features with a gripper read the estimator's output; "
+                f"{type(belief).__name__} has none"
             )
         self._belief = belief
 
@@ -138,4 +166,8 @@ class BeliefFeature:
             out[7:10] = mean[3:6] / self.speed_scale_mps
         y = np.asarray(observation, dtype=float)[self.position]
         out[10:13] = (mean[:3] - y) / self.position_scale_m
+        if self.gripper is not None and self.finger is not None:
+            robot = np.asarray(self._belief.output, dtype=float)
+            out[13:16] = (mean[:3] - robot[self.gripper]) / self.position_scale_m
+            out[16] = float(robot[self.finger][0]) / self.finger_scale_m
         return out

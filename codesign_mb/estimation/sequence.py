@@ -144,6 +144,7 @@ class GaussianSequenceEstimator(LearnedEstimator):
         self._t = 0
         self._mean = np.zeros(features.out_dim)
         self._var = np.ones(features.out_dim)
+        self._output = np.zeros(features.obs_dim + features.velocity_dim)
 
     @classmethod
     def create(
@@ -165,6 +166,12 @@ class GaussianSequenceEstimator(LearnedEstimator):
     def covariance(self) -> NDArray[np.float64]:
         """The network's (diagonal) covariance of :attr:`state`."""
         return np.diag(self._var)
+
+    @property
+    def output(self) -> NDArray[np.float64]:
+        """The last estimate as the controller got it (the plant's state layout: the robot's
+        own gripper and fingers, the estimated object)."""
+        return self._output.copy()
 
     @property
     def position_std(self) -> float:
@@ -193,6 +200,7 @@ class GaussianSequenceEstimator(LearnedEstimator):
             out = np.concatenate([out, np.zeros(f.velocity_dim)])
         out[f.target_slice] += residual
         self._mean = out[f.target_slice].copy()
+        self._output = out.copy()
         return out
 
     def _net_config(self) -> dict[str, Any]:

@@ -58,8 +58,10 @@ TABLE_STUDIES: dict[str, tuple[str, str]] = {
     "table_variable": ("variable", "model-based"),
     "table_model_free": ("paper", "model-free"),
     "table_paper": ("paper", "all"),
+    "table_learned_realistic": ("realistic", "learned"),
 }
-"""Table study -> (scenario, pipeline). The learned rows' checkpoints are the paper scenario's."""
+"""Table study -> (scenario, pipeline). The learned rows' checkpoints are the paper scenario's,
+but for ``table_learned_realistic``'s (the learned stack trained on ``realistic``, issue 30)."""
 
 POOLED_SEEDS: dict[str, int] = {"table_model_free": 3}
 """Table study -> how many evaluation root seeds it pools (the set's root and the next ones):

@@ -189,6 +189,8 @@ _TABLE_TITLES = {
     "model-based": "the model-based rows (MPC, predictor, covariance rule) and their references",
     "all": "every row (learned, model-based, mixed) and their references",
     "model-free": "the paper's learned rows and their references",
+    "learned": "the learned stack stage by stage (each row swaps one stage for the "
+    "model-based one) and their references",
 }
 
 
@@ -467,6 +469,7 @@ SECTIONS: dict[str, Callable[[Study, str], str]] = {
     "table_variable": table_section,
     "table_model_free": table_section,
     "table_paper": table_section,
+    "table_learned_realistic": table_section,
     "fig_cn": fig_cn_section,
     "fig_wifi": fig_wifi_section,
 }

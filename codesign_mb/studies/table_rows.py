@@ -326,11 +326,12 @@ def all_rows() -> tuple[TableRow, ...]:
     )
 
 
-LEARNED_CODESIGN_ROW = "BC actor + GRU estimator, model-free SAC QoS (co-design)"
-"""The learned stack of the realistic scenario (issue 30): stage A's behaviour clone behind the
+LEARNED_CODESIGN_ROW = "BC+SAC actor + GRU estimator, model-free SAC QoS (co-design)"
+"""The learned stack of the realistic scenario (issue 30): stage A's actor (a behaviour clone
+fine-tuned by SAC, whose success is the clone's: models/checkpoints/README.md) behind the
 stage-B Gaussian sequence estimator, stage C's SAC QoS policy on that estimator's belief."""
 
-_BC_REALISTIC = ComponentSpec("bc", "checkpoints/stage_a_sequence_realistic/bc.zip")
+_ACTOR_REALISTIC = ComponentSpec("sac", "checkpoints/stage_a_realistic/model.zip")
 _SEQUENCE = ComponentSpec("sequence", "checkpoints/stage_b_sequence_realistic/sequence.pt")
 _LEARNED_QOS = ComponentSpec("learned", "checkpoints/stage_c_learned_realistic")
 
@@ -340,10 +341,10 @@ def learned_rows() -> tuple[TableRow, ...]:
     model-based one, so a reader sees which learned stage costs what (the references add
     each stack's blind, oracle and static rows and random at each row's budget)."""
     return (
-        TableRow(LEARNED_CODESIGN_ROW, _BC_REALISTIC, _SEQUENCE, _LEARNED_QOS),
-        TableRow("BC actor + GRU estimator, static QoS", _BC_REALISTIC, _SEQUENCE, _STATIC),
+        TableRow(LEARNED_CODESIGN_ROW, _ACTOR_REALISTIC, _SEQUENCE, _LEARNED_QOS),
+        TableRow("BC+SAC actor + GRU estimator, static QoS", _ACTOR_REALISTIC, _SEQUENCE, _STATIC),
         TableRow("MPC + GRU estimator, model-free SAC QoS", _MPC_GATED, _SEQUENCE, _LEARNED_QOS),
-        TableRow("BC actor + belt IMM, QoS planner", _BC_REALISTIC, _BELT_IMM, _planner()),
+        TableRow("BC+SAC actor + belt IMM, QoS planner", _ACTOR_REALISTIC, _BELT_IMM, _planner()),
         TableRow(PLANNER_ROW, _MPC_GATED, _BELT_IMM, _planner()),
     )
 
