@@ -33,7 +33,8 @@ from codesign_mb.cli.common import (
 __all__ = ["paper_command", "readme_command", "register"]
 
 _STUDY_NAMES = (
-    "lqg, table_realistic, table_variable, table_model_free, table_paper, fig_cn, fig_wifi, figures"
+    "lqg, table_realistic, table_variable, table_model_free, table_paper, "
+    "table_learned_realistic, fig_cn, fig_wifi, figures"
 )
 """The names of :data:`codesign_mb.studies.paper_studies.STUDIES` (``--help`` imports no study)."""
 

@@ -339,12 +339,13 @@ _LEARNED_QOS = ComponentSpec("learned", "checkpoints/stage_c_learned_realistic")
 def learned_rows() -> tuple[TableRow, ...]:
     """The learned stack on ``realistic`` stage by stage: each row swaps one stage with the
     model-based one, so a reader sees which learned stage costs what (the references add
-    each stack's blind, oracle and static rows and random at each row's budget)."""
+    each stack's blind, oracle and static rows and random at each row's budget). The belt IMM
+    cannot run behind the learned actor: its output has one entry more than the state layout
+    the actor reads (14 vs 13)."""
     return (
         TableRow(LEARNED_CODESIGN_ROW, _ACTOR_REALISTIC, _SEQUENCE, _LEARNED_QOS),
         TableRow("BC+SAC actor + GRU estimator, static QoS", _ACTOR_REALISTIC, _SEQUENCE, _STATIC),
         TableRow("MPC + GRU estimator, model-free SAC QoS", _MPC_GATED, _SEQUENCE, _LEARNED_QOS),
-        TableRow("BC+SAC actor + belt IMM, QoS planner", _ACTOR_REALISTIC, _BELT_IMM, _planner()),
         TableRow(PLANNER_ROW, _MPC_GATED, _BELT_IMM, _planner()),
     )
 
