@@ -154,7 +154,7 @@ def _config(tmp_path: Path, text: str, suffix: str = ".toml") -> str:
         ),
         (
             ["calibrate-perception", "--episodes", "-1", "-o", "{tmp}/c.json"],
-            ["episodes must be >= 0, got -1"],
+            ["episodes must be >= 1, got -1"],
         ),
         (["sweep", "--workers", "100000"], ["workers must be <= 256"]),
     ],
