@@ -30,6 +30,8 @@ from typing import Any, Protocol
 import numpy as np
 from numpy.typing import NDArray
 
+from codesign_mb.adaptation.model_free_features import object_position_in_y
+
 __all__ = ["Belief", "BeliefFeature"]
 
 
@@ -121,15 +123,13 @@ class BeliefFeature:
     @classmethod
     def from_env(cls, env: Any, **options: Any) -> BeliefFeature:
         """For a plant with an ``object_pos`` in its remote part and a horizon."""
+        position = object_position_in_y(env, "belief")
         plant = env.unwrapped
-        layout = getattr(plant, "observation_layout", None) or {}
-        if "object_pos" not in layout or getattr(plant, "horizon", None) is None:
-            raise ValueError("belief features need a plant with object_pos and a horizon")
-        start = layout["object_pos"].start - plant.remote_slice.start
+        layout = plant.observation_layout
         hand = {"gripper": layout.get("gripper_pos"), "finger": layout.get("finger_width")}
         if hand["gripper"] is None or hand["finger"] is None:
             hand = {}
-        return cls(slice(start, start + 3), horizon=int(plant.horizon), **hand, **options)
+        return cls(position, horizon=int(plant.horizon), **hand, **options)
 
     def bind_belief(self, belief: Any) -> None:
         """Read ``belief`` (the robot's estimator) from now on."""

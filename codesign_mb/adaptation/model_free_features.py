@@ -21,7 +21,18 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ["HeldHistoryFeature"]
+__all__ = ["HeldHistoryFeature", "object_position_in_y"]
+
+
+def object_position_in_y(env: Any, features: str) -> slice:
+    """Where the object's position lies in ``y`` (the plant's remote part), for QoS features
+    of kind ``features``, which need a plant with an ``object_pos`` and a horizon."""
+    plant = env.unwrapped
+    layout = getattr(plant, "observation_layout", None) or {}
+    if "object_pos" not in layout or getattr(plant, "horizon", None) is None:
+        raise ValueError(f"{features} features need a plant with object_pos and a horizon")
+    start = layout["object_pos"].start - plant.remote_slice.start
+    return slice(start, start + 3)
 
 
 class HeldHistoryFeature:
@@ -79,12 +90,8 @@ class HeldHistoryFeature:
     def from_env(cls, env: Any, **options: Any) -> HeldHistoryFeature:
         """For a plant with an ``object_pos`` in its remote part, a period and a horizon."""
         plant = env.unwrapped
-        layout = getattr(plant, "observation_layout", None) or {}
-        if "object_pos" not in layout or getattr(plant, "horizon", None) is None:
-            raise ValueError("held_history features need a plant with object_pos and a horizon")
-        start = layout["object_pos"].start - plant.remote_slice.start
         return cls(
-            slice(start, start + 3),
+            object_position_in_y(env, "held_history"),
             control_period_s=float(plant.control_period_s),
             horizon=int(plant.horizon),
             **options,

@@ -251,6 +251,13 @@ class LearnedEstimator:
         feats = self.features(observation, self._prev_action)
         with torch.no_grad():
             residual = self._residual(torch.as_tensor(feats)[None]).numpy().reshape(-1)
+        return self._output_of(observation, residual)
+
+    def _output_of(
+        self, observation: NDArray[np.float64], residual: NDArray[Any]
+    ) -> NDArray[np.float64]:
+        """The plant's state layout: the networked observation (its age dropped), the velocity
+        slot appended where estimated, the estimated entries moved by ``residual``."""
         f = self.features
         out = observation[:-1].copy()
         if f.velocity_dim:  # the velocity slot of the state layout, after the observation

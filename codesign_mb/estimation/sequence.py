@@ -34,7 +34,13 @@ from torch import nn
 
 from codesign_mb.estimation.learned import EstimatorFeatures, LearnedEstimator, _Normalised
 
-__all__ = ["CELLS", "GaussianSequenceEstimator", "GaussianSequenceNet", "SequenceFeatures"]
+__all__ = [
+    "CELLS",
+    "GaussianSequenceEstimator",
+    "GaussianSequenceNet",
+    "SequenceFeatures",
+    "sequence_features",
+]
 
 CELLS = ("gru", "lstm")
 """Recurrent cells the sequence estimator can use."""
@@ -142,7 +148,6 @@ class GaussianSequenceEstimator(LearnedEstimator):
         self._state: Any = None
         self._memory = _Increments()
         self._t = 0
-        self._mean = np.zeros(features.out_dim)
         self._var = np.ones(features.out_dim)
         self._output = np.zeros(features.obs_dim + features.velocity_dim)
 
@@ -160,7 +165,7 @@ class GaussianSequenceEstimator(LearnedEstimator):
     @property
     def state(self) -> NDArray[np.float64]:
         """The estimated entries (position, then velocity where estimated), as the filters'."""
-        return self._mean.copy()
+        return self._output[self.features.target_slice].copy()
 
     @property
     def covariance(self) -> NDArray[np.float64]:
@@ -195,11 +200,7 @@ class GaussianSequenceEstimator(LearnedEstimator):
         scale = net.out_std.numpy().astype(np.float64)
         residual = mean.numpy().reshape(-1) * scale
         self._var = np.exp(log_var.numpy().reshape(-1).astype(np.float64)) * scale**2
-        out = observation[:-1].copy()
-        if f.velocity_dim:  # the velocity slot of the state layout, after the observation
-            out = np.concatenate([out, np.zeros(f.velocity_dim)])
-        out[f.target_slice] += residual
-        self._mean = out[f.target_slice].copy()
+        out = self._output_of(observation, residual)
         self._output = out.copy()
         return out
 

@@ -330,7 +330,7 @@ def estimator_mse(
         masks = [np.ones(len(est), dtype=bool), *(labels == k for k in range(len(PHASES)))]
         counts += [m.sum() for m in masks]
         gaussian = gaussian and beliefs is not None
-        if gaussian and position is not None and beliefs is not None:
+        if position is not None and beliefs is not None:
             cols = slice(position.start - remote.start, position.stop - remote.start)
             means, covariances = beliefs
             ok = nees(means[:, :3] - truth[:, cols], covariances[:, :3, :3]) <= _INSIDE_LIMIT

@@ -23,6 +23,7 @@ from codesign_mb.estimation.learned import (
 )
 from codesign_mb.estimation.sequence import (
     GaussianSequenceEstimator,
+    GaussianSequenceNet,
     SequenceFeatures,
     sequence_features,
 )
@@ -161,17 +162,18 @@ its (detached) variance to the beta, so the mean is not neglected where the vari
 def _masked_loss(net, x, y, mask, metric: str = "loss") -> torch.Tensor:
     """The masked mean over steps: the normalised MSE (point nets) or the beta-NLL (Gaussian
     nets); ``metric="rmse"``: the RMS error of the first three entries in physical units."""
+    gaussian = isinstance(net, GaussianSequenceNet)
     out = net(x)
-    target = y / net.out_std
     if metric == "rmse":
-        err = ((out[0] * net.out_std if len(out) == 3 else out[0]) - y)[..., :3]
+        err = ((out[0] * net.out_std if gaussian else out[0]) - y)[..., :3]
         return ((err**2).sum(-1) * mask).sum().div(mask.sum()).sqrt()
-    if len(out) == 2:  # point estimate: the MSE of eq_control_estimation
-        per_step = ((out[0] - y) / net.out_std) ** 2
-    else:  # Gaussian: beta-NLL in units of the training spread
+    if gaussian:  # beta-NLL in units of the training spread (the net's mean is normalised)
         mean, log_var = out[0], out[1]
         var = log_var.exp()
-        per_step = 0.5 * (log_var + (target - mean) ** 2 / var) * var.detach() ** NLL_BETA
+        residual = y / net.out_std - mean
+        per_step = 0.5 * (log_var + residual**2 / var) * var.detach() ** NLL_BETA
+    else:  # point estimate: the MSE of eq_control_estimation
+        per_step = ((out[0] - y) / net.out_std) ** 2
     return (per_step.mean(-1) * mask).sum() / mask.sum()
 
 
