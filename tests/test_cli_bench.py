@@ -77,6 +77,6 @@ def test_bench_config_file(app: typer.Typer, tmp_path: Any) -> None:
 def test_every_registered_benchmark_resolves() -> None:
     from codesign_mb.core.registry import resolve
 
-    assert set(suite.BENCHMARKS) == {"env", "loop", "mpc", "allocators", "estimator"}
+    assert set(suite.BENCHMARKS) == {"env", "loop", "mpc", "allocators", "estimator", "offline-lp"}
     for target in suite.BENCHMARKS.values():
         assert callable(resolve(target))

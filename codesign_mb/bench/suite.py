@@ -24,6 +24,7 @@ BENCHMARKS: dict[str, str] = {
     "mpc": "codesign_mb.bench.mpc:bench_mpc",
     "allocators": "codesign_mb.bench.allocators:bench_allocators",
     "estimator": "codesign_mb.bench.estimator:bench_estimator",
+    "offline-lp": "codesign_mb.bench.offline_lp:bench_offline_lp",
 }
 """Benchmark name -> ``"module:function"``; the function is ``(*, repeats, seed) -> dict``."""
 

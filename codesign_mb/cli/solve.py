@@ -7,7 +7,7 @@ from typing import Annotated
 
 import typer
 
-from codesign_mb.cli.common import JsonOption, cli_errors, emit
+from codesign_mb.cli.common import JsonOption, cli_errors, emit, progress_bar
 
 __all__ = ["register"]
 
@@ -25,8 +25,14 @@ def register(app: typer.Typer) -> None:
             ),
         ],
         solver: Annotated[
-            str, typer.Option("--solver", "-s", help="LP solver: highs, clarabel or osqp.")
-        ] = "highs",
+            str,
+            typer.Option(
+                "--solver",
+                "-s",
+                help="LP solver: auto (HiGHS simplex on small LPs, Clarabel interior point on "
+                "large), highs, clarabel or osqp.",
+            ),
+        ] = "auto",
         compare: Annotated[
             bool,
             typer.Option(
@@ -34,6 +40,26 @@ def register(app: typer.Typer) -> None:
                 help="Also replay the greedy and convex allocators on the trace (gap to optimum).",
             ),
         ] = False,
+        windows: Annotated[
+            bool,
+            typer.Option(
+                "--windows/--monolithic",
+                help="Solve by independent windows (cut where no frame is in flight; the same "
+                "optimum) or as one LP.",
+            ),
+        ] = True,
+        workers: Annotated[
+            int, typer.Option("--workers", "-j", help="Processes solving windows.", min=1)
+        ] = 1,
+        journal: Annotated[
+            Path | None,
+            typer.Option(
+                "--journal",
+                help="File recording finished windows; a killed solve rerun with it resumes. "
+                "\\[default: none]",
+                dir_okay=False,
+            ),
+        ] = None,
         as_json: JsonOption = False,
     ) -> None:
         """Solve the offline allocation LP: the most frames any scheduler delivers in time.
@@ -42,5 +68,17 @@ def register(app: typer.Typer) -> None:
         """
         from codesign_mb.studies.offline_lp import solve_instance
 
-        record = solve_instance(instance, solver=solver, compare=compare)
+        with progress_bar("windows", disable=as_json) as progress:
+            record = solve_instance(
+                instance,
+                solver=solver,
+                compare=compare,
+                windows=windows,
+                workers=workers,
+                journal=journal,
+                progress=progress,
+            )
+        if not as_json:
+            record.pop("per_window", None)
+            record.pop("per_robot", None)
         emit(record, as_json=as_json, title="offline allocation LP")

@@ -74,9 +74,8 @@ Chosen here (the paper does not give them):
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import Any
 
 from codesign_mb.adaptation.rules import AgeTriggeredQos
@@ -92,10 +91,8 @@ from codesign_mb.core.registry import ComponentSpec, PlantSpec, check_options, f
 from codesign_mb.plants.scenarios import scenario_options
 from codesign_mb.rollout.compose import covariance_rule
 from codesign_mb.studies.table_rows import PLANNER_ROW, model_based_rows
-from codesign_mb.wifi.channel import ChannelConfig
-from codesign_mb.wifi.config import SCHEDULERS, WifiConfig
-from codesign_mb.wifi.mac import MacTiming
-from codesign_mb.wifi.phy import PhyConfig
+from codesign_mb.wifi.config import SCHEDULERS
+from codesign_mb.wifi.presets import CHANNEL_PRESETS
 
 __all__ = [
     "CHANNEL_PRESETS",
@@ -210,20 +207,6 @@ RULE_SIGNATURES: dict[str, tuple[Callable[..., Any], bool]] = {
     "covariance_triggered": (covariance_rule, True),
 }
 """What each of :data:`QOS_RULES` calls, and whether with the plant: its options' schema."""
-
-_PAPER_CELL = WifiConfig(
-    phy=PhyConfig(guard_interval_us=3.2, ul_guard_interval_us=3.2),
-    channel=ChannelConfig(fixed_mcs=1, rician_k_db=math.inf),
-    mac=MacTiming(legacy_rate_mbps=6.0),
-)
-
-CHANNEL_PRESETS: dict[str, WifiConfig] = {
-    # The assumptions, which come from the paper and which were chosen: the module docstring.
-    "paper": _PAPER_CELL,
-    "better": WifiConfig(channel=ChannelConfig(q0=0.95, distance_range_m=(5.0, 20.0))),
-    "paper-scheduled": replace(_PAPER_CELL, mac=replace(_PAPER_CELL.mac, scheduled_uplink=True)),
-}
-"""Named cells for ``codesign wifi capacity --channels``."""
 
 
 def describe_channel(name: str) -> str:

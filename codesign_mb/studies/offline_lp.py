@@ -8,14 +8,18 @@ and convex allocators deliver when replayed on the same trace.
 
 from __future__ import annotations
 
+import functools
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 from codesign_mb.core.config import LATENCY_STEPS_CAP, ROBOTS_CAP, SEED_CAP, check_range
+from codesign_mb.evaluation.pool import check_workers, imap
 from codesign_mb.network.qos import QosRequest
 from codesign_mb.studies.fig_wifi import CHANNEL_PRESETS
 from codesign_mb.wifi.cell import generate_trace
 from codesign_mb.wifi.offline import offline_optimum
+from codesign_mb.wifi.offline_windows import solve_windows
 from codesign_mb.wifi.sim import TRACE_CELLS_CAP, Trace, replay
 
 __all__ = ["solve_instance", "write_trace"]
@@ -60,28 +64,67 @@ def write_trace(
     return trace
 
 
-def solve_instance(path: str | Path, *, solver: str = "highs", compare: bool = False) -> dict:
-    """Solve the instance at ``path``; with ``compare``, the allocators' frames and gaps."""
+def solve_instance(
+    path: str | Path,
+    *,
+    solver: str = "auto",
+    compare: bool = False,
+    windows: bool = True,
+    workers: int | None = 1,
+    journal: str | Path | None = None,
+    progress: Callable[[int, int], None] | None = None,
+) -> dict:
+    """Solve the instance at ``path``; with ``compare``, the allocators' frames and gaps.
+
+    ``windows``: by independent windows (:mod:`codesign_mb.wifi.offline_windows`, the same
+    optimum), solved by ``workers`` processes of the project's pool, finished windows
+    recorded in ``journal`` (a killed solve resumes); else as one LP.
+    """
+    check_workers(workers, 1)
     trace = Trace.load(path)
-    result = offline_optimum(trace, solver=solver)
-    record: dict[str, Any] = {
-        "instance": str(path),
-        "optimum_frames": result.optimum,
-        "solver": result.solver,
-        "solve_time_s": result.solve_time_s,
-        "status": result.status,
-        "frames_admitted": result.n_frames_admitted,
-        "frames_deliverable": result.n_frames,
-        "variables": result.n_variables,
-        "constraints": result.n_constraints,
-    }
+    record: dict[str, Any] = {"instance": str(path)}
+    if windows:
+        mapper = functools.partial(imap, workers=workers)
+        result = solve_windows(
+            trace, solver=solver, mapper=mapper, journal=journal, progress=progress
+        )
+        table = result.windows
+        optimum = result.optimum
+        record.update(
+            optimum_frames=optimum,
+            solver=",".join(sorted(set(table["solver"]))),
+            solve_time_s=result.solve_time_s,
+            build_time_s=float(table["build_time_s"].sum()),
+            status=result.status,
+            frames_admitted=len(trace.frames),
+            frames_deliverable=int(table["frames"].sum()),
+            variables=result.n_variables,
+            constraints=int(table["constraints"].sum()),
+            windows=len(table),
+            windows_resumed=int(table["resumed"].sum()),
+            largest_window_variables=int(table["variables"].max()),
+            per_window=table[["first_tick", "end_tick", "frames", "optimum"]].to_dict("list"),
+            per_robot=result.stations["frames"].round(9).tolist(),
+        )
+    else:
+        mono = offline_optimum(trace, solver=solver)
+        optimum = mono.optimum
+        record.update(
+            optimum_frames=optimum,
+            solver=mono.solver,
+            solve_time_s=mono.solve_time_s,
+            build_time_s=mono.build_time_s,
+            status=mono.status,
+            frames_admitted=mono.n_frames_admitted,
+            frames_deliverable=mono.n_frames,
+            variables=mono.n_variables,
+            constraints=mono.n_constraints,
+        )
     if compare:
         for name in ("greedy", "convex"):
             replayed = replay(trace, name)
             delivered = replayed.delivered
             record[f"{name}_frames"] = delivered
             record[f"{name}_solver_fallbacks"] = replayed.fallbacks.total
-            record[f"{name}_gap"] = (
-                (result.optimum - delivered) / result.optimum if result.optimum > 0 else 0.0
-            )
+            record[f"{name}_gap"] = (optimum - delivered) / optimum if optimum > 0 else 0.0
     return record

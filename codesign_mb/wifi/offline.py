@@ -25,8 +25,10 @@ the ticks that carry a DL PPDU: its layouts use at most ``S`` subcarriers, its P
 is queued only after its camera frame), so the optimum bounds the delivered count of any
 online allocator. Frames the channel will lose are left out: no schedule can deliver them.
 
-Solvers: HiGHS (``scipy.optimize.linprog``), Clarabel and OSQP, each called on the same
-matrices.
+Solvers (:mod:`codesign_mb.wifi.lp_solvers`): HiGHS through ``highspy``, Clarabel and OSQP,
+each handed the same sparse arrays; :mod:`codesign_mb.wifi.offline_windows` splits a trace
+into independent windows, :mod:`codesign_mb.wifi.offline_reference` writes the same LP in
+cvxpy (the readable reference the tests check the assembly against).
 """
 
 from __future__ import annotations
@@ -39,6 +41,7 @@ import pandas as pd
 import scipy.sparse as sp
 from numpy.typing import NDArray
 
+from codesign_mb.wifi.lp_solvers import LP_SOLVERS, solve_box_lp
 from codesign_mb.wifi.sim import Trace
 
 __all__ = [
@@ -51,8 +54,6 @@ __all__ = [
     "offline_optimum",
 ]
 
-LP_SOLVERS = ("highs", "clarabel", "osqp")
-
 
 @dataclass(frozen=True)
 class OfflineLp:
@@ -60,7 +61,9 @@ class OfflineLp:
 
     ``frame_rows`` are the rows of the trace's frame table in the LP (one per frame, in
     order; ``objective_vars`` their ``V_f,last``), ``ul_rows``/``ul_ticks`` and
-    ``dl_rows``/``dl_ticks`` the capacity constraints of each tick.
+    ``dl_rows``/``dl_ticks`` the capacity constraints of each tick. ``bounded``: the
+    variables whose bounds ``0 <= x <= 1`` are not implied by the rows (each chain's first
+    and last, and ``y``; ``None``: all), which an interior-point solver needs as rows.
     """
 
     c: NDArray[np.float64]
@@ -73,6 +76,7 @@ class OfflineLp:
     ul_ticks: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     dl_rows: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     dl_ticks: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    bounded: NDArray[np.int64] | None = None
 
     @property
     def n_variables(self) -> int:
@@ -95,212 +99,157 @@ class OfflineResult:
     n_constraints: int
     n_frames: int
     n_frames_admitted: int
+    build_time_s: float = 0.0
+    frame_rows: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    """The trace's frame-table rows the LP holds (frames both hops deliver, in time)."""
+    delivered: NDArray[np.float64] = field(default_factory=lambda: np.zeros(0))
+    """Per LP frame (``frame_rows``), the fraction the optimum delivers in time (``V_f``)."""
 
 
-_Entries = list[tuple[int, int, float]]
-"""Capacity entries ``(tick, variable, coefficient)``."""
+def _ranges(lengths: NDArray[np.int64]) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """For blocks of ``lengths``: each entry's block and its index inside the block."""
+    block = np.repeat(np.arange(lengths.size), lengths)
+    starts = np.cumsum(lengths) - lengths
+    return block, np.arange(int(lengths.sum())) - starts[block]
 
 
-class _LpAssembly:
-    """[lp] of one trace under assembly: COO triplets of the rows, per-tick capacity entries.
+class _Rows:
+    """COO triplets of ``<=`` rows under assembly (numpy blocks, no per-entry Python)."""
 
-    Rows come in the order of the frames (per frame: the camera frame's monotonicity rows, then
-    per state-frame tick its monotonicity and precedence rows), then the DL-exchange rows, then
-    one UL and one DL capacity row per tick; variables per frame ``U`` then ``V``, then ``y``.
-    """
-
-    def __init__(self, trace: Trace) -> None:
-        cfg = trace.config
-        mac, phy = cfg.mac, cfg.phy
-        self.trace = trace
-        self.p = cfg.traffic.processing_ticks(mac.tick_us)
-        self.n_ul = mac.max_ul_data_symbols(phy, with_dl=False)
-        self.n_ul_dl = mac.max_ul_data_symbols(phy, with_dl=True)
-        self.n_dl = mac.dl_data_symbols
-        self.full = float(phy.plan.full_band_data_subcarriers)
+    def __init__(self) -> None:
         self.rows: list[NDArray[np.int64]] = []
         self.cols: list[NDArray[np.int64]] = []
         self.vals: list[NDArray[np.float64]] = []
-        self.b: list[float] = []
-        self.nv = 0
-        self.ul_cap: _Entries = []
-        self.dl_cap: _Entries = []
-        self.dl_steps: list[tuple[int, int, int]] = []  # (tick, V_k, V_k-1 or -1)
-        self.objective: list[int] = []
-        self.frame_rows: list[int] = []
+        self.b: list[NDArray[np.float64]] = []
+        self.n = 0
 
-    def _variables(self, n: int) -> int:
-        first = self.nv
-        self.nv += n
-        return first
+    def pairs(self, first: NDArray[np.int64], second: NDArray[np.int64]) -> None:
+        """Rows ``x_first - x_second <= 0``."""
+        r = self.n + np.arange(first.size)
+        self.rows += [r, r]
+        self.cols += [first, second]
+        self.vals += [np.ones(first.size), -np.ones(first.size)]
+        self.b.append(np.zeros(first.size))
+        self.n += first.size
 
-    def _row(self, entries: list[tuple[int, float]], rhs: float) -> None:
-        idx = np.array([e[0] for e in entries], dtype=np.int64)
-        self.rows.append(np.full(idx.size, len(self.b), dtype=np.int64))
-        self.cols.append(idx)
-        self.vals.append(np.array([e[1] for e in entries]))
-        self.b.append(rhs)
+    def grouped(
+        self, group: NDArray[np.int64], cols: NDArray[np.int64], vals: NDArray[np.float64]
+    ) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+        """One row ``sum vals * x_cols <= 1`` per distinct ``group``; the rows and groups."""
+        uniq, inverse = np.unique(group, return_inverse=True)
+        self.rows.append(self.n + inverse.astype(np.int64))
+        self.cols.append(cols)
+        self.vals.append(vals)
+        self.b.append(np.ones(uniq.size))
+        rows = self.n + np.arange(uniq.size, dtype=np.int64)
+        self.n += uniq.size
+        return rows, uniq
 
-    def _window(self, first: int, ticks: NDArray[np.int64], coef: NDArray, cap: _Entries) -> None:
-        """Capacity entries of a cumulative fraction over ``ticks`` (``coef (X_k - X_k-1)``)."""
-        for j, (k, c) in enumerate(zip(ticks.tolist(), coef.tolist(), strict=True)):
-            cap.append((k, first + j, c))
-            if j > 0:
-                cap.append((k, first + j - 1, -c))
-
-    def add_frame(self, row: int, station: int, cap: int, dead: int, ul: int, dl: int) -> None:
-        """The ``U`` and ``V`` of one frame (skipped when its windows are empty)."""
-        trace, p = self.trace, self.p
-        dead = min(dead, trace.horizon_ticks)
-        ul_ticks = np.arange(cap, dead - 1 - p)
-        dl_ticks = np.arange(cap + 1 + p, dead)
-        if ul_ticks.size == 0 or dl_ticks.size == 0:
-            return
-        self.frame_rows.append(row)
-        u0 = self._variables(ul_ticks.size)
-        v0 = self._variables(dl_ticks.size)
-        for j in range(1, ul_ticks.size):  # U_k-1 <= U_k
-            self._row([(u0 + j - 1, 1.0), (u0 + j, -1.0)], 0.0)
-        for j, k in enumerate(dl_ticks.tolist()):
-            if j > 0:  # V_k-1 <= V_k
-                self._row([(v0 + j - 1, 1.0), (v0 + j, -1.0)], 0.0)
-            self.dl_steps.append((k, v0 + j, v0 + j - 1 if j > 0 else -1))
-            ju = min(k - 1 - p - cap, ul_ticks.size - 1)  # V_k <= U_{k-1-p}
-            self._row([(v0 + j, 1.0), (u0 + ju, -1.0)], 0.0)
-        ul_coef = ul / (trace.ul_bpss[station, ul_ticks] * self.n_ul * self.full)
-        dl_coef = dl / (trace.dl_bpss[station, dl_ticks] * self.n_dl * self.full)
-        self._window(u0, ul_ticks, ul_coef, self.ul_cap)
-        self._window(v0, dl_ticks, dl_coef, self.dl_cap)
-        self.objective.append(v0 + dl_ticks.size - 1)
-
-    def add_dl_exchanges(self) -> None:
-        """``y_k >= V_k - V_k-1``: a tick that carries any state frame holds a DL exchange,
-        which leaves the UL PPDU at most ``n_ul_dl`` of the ``n_ul`` symbols."""
-        if not self.dl_steps or self.n_ul_dl >= self.n_ul:
-            return
-        y0 = self._variables(self.trace.horizon_ticks)
-        for k, v, v_prev in self.dl_steps:
-            prev = [(v_prev, -1.0)] if v_prev >= 0 else []
-            self._row([(v, 1.0), *prev, (y0 + k, -1.0)], 0.0)
-        share = (self.n_ul - self.n_ul_dl) / self.n_ul
-        for k in sorted({k for k, _, _ in self.dl_steps}):
-            self.ul_cap.append((k, y0 + k, share))
-
-    def _capacity(self, entries: _Entries) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
-        """One row ``sum coef * var <= 1`` per tick of ``entries``; their rows and ticks."""
-        if not entries:
-            return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
-        r = len(self.b)
-        ticks = np.array([e[0] for e in entries], dtype=np.int64)
-        uniq, inverse = np.unique(ticks, return_inverse=True)
-        self.rows.append(r + inverse.astype(np.int64))
-        self.cols.append(np.array([e[1] for e in entries], dtype=np.int64))
-        self.vals.append(np.array([e[2] for e in entries], dtype=float))
-        self.b.extend([1.0] * uniq.size)
-        return r + np.arange(uniq.size, dtype=np.int64), uniq
-
-    def build(self) -> OfflineLp:
-        ul_rows, ul_ticks = self._capacity(self.ul_cap)
-        dl_rows, dl_ticks = self._capacity(self.dl_cap)
-        shape = (len(self.b), self.nv)
-        A = (
-            sp.csc_matrix(
-                (np.concatenate(self.vals), (np.concatenate(self.rows), np.concatenate(self.cols))),
-                shape=shape,
-            )
-            if self.rows
-            else sp.csc_matrix(shape)
+    def matrix(self, n_variables: int) -> tuple[sp.csc_matrix, NDArray[np.float64]]:
+        if not self.rows:
+            return sp.csc_matrix((self.n, n_variables)), np.zeros(self.n)
+        A = sp.csc_matrix(
+            (np.concatenate(self.vals), (np.concatenate(self.rows), np.concatenate(self.cols))),
+            shape=(self.n, n_variables),
         )
-        c = np.zeros(self.nv)
-        c[self.objective] = 1.0
-        return OfflineLp(
-            c=c,
-            A=A,
-            b=np.asarray(self.b, dtype=float),
-            n_frames=len(self.frame_rows),
-            frame_rows=np.asarray(self.frame_rows, dtype=np.int64),
-            objective_vars=np.asarray(self.objective, dtype=np.int64),
-            ul_rows=ul_rows,
-            ul_ticks=ul_ticks,
-            dl_rows=dl_rows,
-            dl_ticks=dl_ticks,
-        )
+        return A, np.concatenate(self.b)
+
+
+def _chain(
+    first: NDArray[np.int64], length: NDArray[np.int64]
+) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64]]:
+    """Variables of cumulative chains (``first``, ``length`` per frame): each one's frame,
+    its index in the chain and its column."""
+    frame, j = _ranges(length)
+    return frame, j, first[frame] + j
+
+
+def build_offline_lp(trace: Trace) -> OfflineLp:
+    """Assemble [lp] for a trace as sparse arrays (``O(frames x window)`` non-zeros).
+
+    Variables per frame ``U`` then ``V``, then one ``y`` per tick; rows: monotonicity,
+    precedence and DL-exchange rows, then one UL and one DL capacity row per busy tick.
+    Frames the channel loses on either hop are left out: no schedule can deliver them.
+    """
+    cfg = trace.config
+    mac, phy = cfg.mac, cfg.phy
+    p = cfg.traffic.processing_ticks(mac.tick_us)
+    n_ul = mac.max_ul_data_symbols(phy, with_dl=False)
+    n_ul_dl = mac.max_ul_data_symbols(phy, with_dl=True)
+    full = float(phy.plan.full_band_data_subcarriers)
+    f = trace.frames[(trace.frames["ul_ok"] != 0) & (trace.frames["dl_ok"] != 0)]
+    cap = f["capture_tick"].to_numpy(dtype=np.int64)
+    dead = np.minimum(f["deadline_tick"].to_numpy(dtype=np.int64), trace.horizon_ticks)
+    nu = dead - 1 - p - cap  # U on [capture, deadline - 1 - p)
+    nd = dead - (cap + 1 + p)  # V on [capture + 1 + p, deadline)
+    keep = (nu > 0) & (nd > 0)
+    cap, nu, nd = cap[keep], nu[keep], nd[keep]
+    station = f["station"].to_numpy(dtype=np.int64)[keep]
+    ul_bits = f["ul_bits"].to_numpy(dtype=float)[keep]
+    dl_bits = f["dl_bits"].to_numpy(dtype=float)[keep]
+    u0 = np.cumsum(nu + nd) - (nu + nd)
+    v0 = u0 + nu
+    nv = int((nu + nd).sum())
+    rows = _Rows()
+    fu, ju, cu = _chain(u0, nu)
+    fv, jv, cv = _chain(v0, nd)
+    later_u, later_v = ju > 0, jv > 0
+    rows.pairs(cu[later_u] - 1, cu[later_u])  # U_k-1 <= U_k
+    rows.pairs(cv[later_v] - 1, cv[later_v])  # V_k-1 <= V_k
+    rows.pairs(cv, u0[fv] + np.minimum(jv, nu[fv] - 1))  # V_k <= U_k-1-p
+    ku, kv = cap[fu] + ju, cap[fv] + 1 + p + jv  # the tick of each U and V
+    n_y = trace.horizon_ticks if nv and n_ul_dl < n_ul else 0
+    if n_y:  # y_k >= V_k - V_k-1: a tick that carries a state frame holds a DL exchange
+        r = rows.n + np.arange(cv.size)
+        prev = later_v
+        rows.rows += [r, r[prev], r]
+        rows.cols += [cv, cv[prev] - 1, nv + kv]
+        rows.vals += [np.ones(cv.size), -np.ones(int(prev.sum())), -np.ones(cv.size)]
+        rows.b.append(np.zeros(cv.size))
+        rows.n += cv.size
+    ul_coef = ul_bits[fu] / (trace.ul_bpss[station[fu], ku] * n_ul * full)
+    dl_coef = dl_bits[fv] / (trace.dl_bpss[station[fv], kv] * mac.dl_data_symbols * full)
+    # capacity of tick k: coef_k (X_k - X_k-1)
+    ul_tick = [ku, ku[later_u]]
+    ul_col = [cu, cu[later_u] - 1]
+    ul_val = [ul_coef, -ul_coef[later_u]]
+    if n_y:
+        busy = np.unique(kv)
+        ul_tick.append(busy)
+        ul_col.append(nv + busy)
+        ul_val.append(np.full(busy.size, (n_ul - n_ul_dl) / n_ul))
+    ul_rows, ul_ticks = rows.grouped(
+        np.concatenate(ul_tick), np.concatenate(ul_col), np.concatenate(ul_val)
+    )
+    dl_rows, dl_ticks = rows.grouped(
+        np.concatenate([kv, kv[later_v]]),
+        np.concatenate([cv, cv[later_v] - 1]),
+        np.concatenate([dl_coef, -dl_coef[later_v]]),
+    )
+    A, b = rows.matrix(nv + n_y)
+    c = np.zeros(nv + n_y)
+    objective = v0 + nd - 1
+    c[objective] = 1.0
+    return OfflineLp(
+        c=c,
+        A=A,
+        b=b,
+        n_frames=int(cap.size),
+        frame_rows=f.index.to_numpy(dtype=np.int64)[keep],
+        objective_vars=objective,
+        ul_rows=ul_rows,
+        ul_ticks=ul_ticks,
+        dl_rows=dl_rows,
+        dl_ticks=dl_ticks,
+        bounded=np.concatenate([u0, v0 - 1, v0, objective, nv + np.arange(n_y)]),
+    )
 
 
 def _int_column(frames: pd.DataFrame, name: str) -> list[int]:
     return [int(x) for x in frames[name].to_numpy(dtype=np.int64)]
 
 
-def build_offline_lp(trace: Trace) -> OfflineLp:
-    """Assemble [lp] for a trace (sparse, ``O(frames x window)`` non-zeros).
-
-    Frames the channel loses on either hop are left out: no schedule can deliver them.
-    """
-    frames = trace.frames[(trace.frames["ul_ok"] != 0) & (trace.frames["dl_ok"] != 0)]
-    lp = _LpAssembly(trace)
-    columns = ("station", "capture_tick", "deadline_tick", "ul_bits", "dl_bits")
-    rows = frames.index.to_numpy(dtype=np.int64).tolist()
-    for row, *values in zip(rows, *(_int_column(frames, c) for c in columns), strict=True):
-        lp.add_frame(row, *values)
-    lp.add_dl_exchanges()
-    return lp.build()
-
-
-def _solve(lp: OfflineLp, solver: str) -> tuple[float, str]:
-    nv = lp.n_variables
-    if nv == 0:
-        return 0.0, "optimal"
-    if solver == "highs":
-        from scipy.optimize import linprog
-
-        res = linprog(-lp.c, A_ub=lp.A, b_ub=lp.b, bounds=(0.0, 1.0), method="highs")
-        if res.status != 0:
-            return float("nan"), f"highs: {res.message}"
-        return float(-res.fun), "optimal"
-    if solver == "clarabel":
-        import clarabel
-
-        A = sp.vstack([lp.A, sp.identity(nv), -sp.identity(nv)], format="csc")
-        b = np.concatenate([lp.b, np.ones(nv), np.zeros(nv)])
-        P = sp.csc_matrix((nv, nv))
-        settings = clarabel.DefaultSettings()
-        settings.verbose = False
-        s = clarabel.DefaultSolver(
-            P, -lp.c, A, b, [clarabel.NonnegativeConeT(A.shape[0])], settings
-        )
-        sol = s.solve()
-        status = str(sol.status)
-        if "Solved" not in status:
-            return float("nan"), f"clarabel: {status}"
-        return float(lp.c @ np.asarray(sol.x)), "optimal"
-    if solver == "osqp":
-        import osqp
-
-        A = sp.vstack([lp.A, sp.identity(nv)], format="csc")
-        lower = np.concatenate([np.full(lp.A.shape[0], -np.inf), np.zeros(nv)])
-        upper = np.concatenate([lp.b, np.ones(nv)])
-        m = osqp.OSQP()
-        m.setup(
-            sp.csc_matrix((nv, nv)),
-            -lp.c,
-            A,
-            lower,
-            upper,
-            verbose=False,
-            eps_abs=1e-7,
-            eps_rel=1e-7,
-            max_iter=200_000,
-            polishing=True,
-        )
-        res = m.solve(raise_error=False)
-        status = str(res.info.status)
-        if res.x is None or not np.all(np.isfinite(res.x)):
-            return float("nan"), f"osqp: {status}"
-        return float(lp.c @ res.x), status
-    raise ValueError(f"solver must be one of {LP_SOLVERS}, got {solver!r}")
-
-
-def offline_optimum(trace: Trace, *, solver: str = "highs") -> OfflineResult:
+def offline_optimum(trace: Trace, *, solver: str = "auto") -> OfflineResult:
     """Solve [lp] for ``trace``: the most frames any scheduler can deliver in time.
 
     Parameters
@@ -309,27 +258,36 @@ def offline_optimum(trace: Trace, *, solver: str = "highs") -> OfflineResult:
         A recorded trace (:func:`codesign_mb.wifi.cell.generate_trace`,
         :meth:`SharedChannel.trace`, or an instance file).
     solver:
-        ``"highs"`` (exact simplex/IPM, default), ``"clarabel"`` (interior point) or ``"osqp"``
-        (first order; approximate on LPs).
+        ``"auto"`` (default: HiGHS's simplex on small LPs, Clarabel's interior point on large
+        ones), ``"highs"``, ``"clarabel"`` or ``"osqp"`` (first order; approximate on LPs);
+        see :mod:`codesign_mb.wifi.lp_solvers`.
     """
     if not isinstance(solver, str) or solver.lower() not in LP_SOLVERS:
         raise ValueError(f"solver must be one of {LP_SOLVERS}, got {solver!r}")
-    solver = solver.lower()
     if not isinstance(trace, Trace):
         raise TypeError(f"trace must be a Trace, got {type(trace).__name__}")
-    lp = build_offline_lp(trace)
     start = time.perf_counter()
-    value, status = _solve(lp, solver)
-    elapsed = time.perf_counter() - start
+    lp = build_offline_lp(trace)
+    built = time.perf_counter()
+    sol = solve_box_lp(lp.c, lp.A, lp.b, solver=solver, bounded=lp.bounded)
+    elapsed = time.perf_counter() - built
+    delivered = (
+        np.clip(sol.x[lp.objective_vars], 0.0, 1.0)
+        if sol.x is not None
+        else np.full(lp.n_frames, np.nan)
+    )
     return OfflineResult(
-        optimum=value,
-        solver=solver,
+        optimum=sol.value,
+        solver=sol.solver,
         solve_time_s=elapsed,
-        status=status,
+        status=sol.status,
         n_variables=lp.n_variables,
         n_constraints=lp.n_constraints,
         n_frames=lp.n_frames,
         n_frames_admitted=len(trace.frames),
+        build_time_s=built - start,
+        frame_rows=lp.frame_rows,
+        delivered=delivered,
     )
 
 
@@ -364,8 +322,6 @@ def airtime_prices(trace: Trace) -> AirtimePrices:
     value it creates (1 frame), and one left out would cost more than that: ``ul_bill`` is
     a lower bound of that cost (the UL part at the cheapest tick of the frame's window).
     """
-    from scipy.optimize import linprog
-
     lp = build_offline_lp(trace)
     horizon = trace.horizon_ticks
     ticks = pd.DataFrame({"tick": np.arange(horizon), "ul_price": 0.0, "dl_price": 0.0})
@@ -373,10 +329,10 @@ def airtime_prices(trace: Trace) -> AirtimePrices:
     if lp.n_variables == 0:
         frames = frames.assign(delivered=0.0, ul_work=0.0, ul_bill=0.0)
         return AirtimePrices(0.0, ticks, frames)
-    res = linprog(-lp.c, A_ub=lp.A, b_ub=lp.b, bounds=(0.0, 1.0), method="highs")
-    if res.status != 0:
-        raise ValueError(f"the offline LP could not be solved: {res.message}")
-    duals = -np.asarray(res.ineqlin.marginals)  # prices of "<=" rows of the max problem
+    sol = solve_box_lp(lp.c, lp.A, lp.b, solver="highs")
+    if sol.x is None or sol.row_duals is None:
+        raise ValueError(f"the offline LP could not be solved: {sol.status}")
+    duals = sol.row_duals  # prices of the "<=" rows of the max problem
     ticks.loc[lp.ul_ticks, "ul_price"] = duals[lp.ul_rows]
     ticks.loc[lp.dl_ticks, "dl_price"] = duals[lp.dl_rows]
     cfg = trace.config
@@ -393,8 +349,8 @@ def airtime_prices(trace: Trace) -> AirtimePrices:
         work.append(float(w[0]))
         bill.append(float(np.min(ul_price[window] * w)))
     frames = frames.assign(
-        delivered=np.clip(np.asarray(res.x)[lp.objective_vars], 0.0, 1.0),
+        delivered=np.clip(sol.x[lp.objective_vars], 0.0, 1.0),
         ul_work=work,
         ul_bill=bill,
     )
-    return AirtimePrices(float(-res.fun), ticks, frames)
+    return AirtimePrices(sol.value, ticks, frames)

@@ -1,0 +1,230 @@
+"""[lp] by windows: the horizon cut where no frame is in flight, each window solved alone.
+
+Every variable of [lp] belongs to one frame and lives on the ticks of that frame's life,
+``[capture, deadline)``, or is a tick's ``y_k``; every row is a frame's (monotonicity,
+precedence, DL exchange) or a tick's (capacity). Cut the horizon at a tick boundary that no
+admitted frame's life spans: no row then holds variables of both sides, the constraint matrix
+is block-diagonal over the windows, and the LP's optimum is the sum of the windows' optima,
+exactly (the windows' solutions together are the monolithic one's, and no better solution of
+the whole can exist, since it would give a better one of some window). No approximation and no
+iteration: the decomposition is a reordering of one LP.
+
+Such cuts exist wherever the cell falls silent for a moment: traffic of robots that ask for few
+packets (a co-design's 10 % leaves about one tick in a hundred free of frames on a 48-robot
+cell). A cell whose robots all stream (static QoS, ``q = 1``) has frames in flight at every
+tick, one window, and is solved whole (``solvers/README.md`` gives both cases' figures).
+
+Windows shorter than ``min_ticks`` are merged with the next (still a union of independent
+blocks), so that a solver call is never spent on a handful of variables; they are solved in
+any order by any ``mapper`` (the project's process pool, :func:`codesign_mb.evaluation.pool.
+imap`, or Ray) and, given a ``journal`` file, a killed solve resumes with the windows it had
+finished.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+from numpy.typing import NDArray
+
+from codesign_mb.wifi.offline import offline_optimum
+from codesign_mb.wifi.sim import Trace
+
+__all__ = ["Window", "WindowedResult", "solve_windows", "split_windows", "window_trace"]
+
+Mapper = Callable[[Callable[..., Any], Sequence[tuple[Any, ...]]], Iterable[tuple[int, Any]]]
+"""``mapper(fn, tasks)`` yields ``(task index, fn(*task))`` for every task, in any order."""
+
+
+@dataclass(frozen=True)
+class Window:
+    """Ticks ``[first_tick, end_tick)`` and the trace's frame-table rows whose lives are in it."""
+
+    first_tick: int
+    end_tick: int
+    frame_rows: NDArray[np.int64]
+
+
+def _lives(trace: Trace) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64]]:
+    """The frames [lp] may hold (both hops deliver them): rows, captures, clipped deadlines."""
+    f = trace.frames
+    keep = ((f["ul_ok"] != 0) & (f["dl_ok"] != 0)).to_numpy()
+    rows = np.flatnonzero(keep).astype(np.int64)
+    cap = f["capture_tick"].to_numpy(dtype=np.int64)[keep]
+    dead = np.minimum(f["deadline_tick"].to_numpy(dtype=np.int64)[keep], trace.horizon_ticks)
+    return rows, cap, dead
+
+
+def split_windows(trace: Trace, *, min_ticks: int = 200) -> list[Window]:
+    """The horizon cut at every tick boundary no frame's life spans, windows merged up to at
+    least ``min_ticks`` ticks (the last may be shorter). One window when frames are always in
+    flight."""
+    if int(min_ticks) != min_ticks or min_ticks < 1:
+        raise ValueError(f"min_ticks must be an integer >= 1, got {min_ticks!r}")
+    horizon = trace.horizon_ticks
+    rows, cap, dead = _lives(trace)
+    live = np.zeros(horizon + 1, dtype=np.int64)  # live[c]: frames with cap < c < dead
+    np.add.at(live, cap + 1, 1)
+    np.add.at(live, np.maximum(dead, cap + 1), -1)
+    spanning = np.cumsum(live)[:horizon]
+    cuts = (np.flatnonzero(spanning[1:] == 0) + 1).tolist()  # boundaries before tick c
+    bounds, first = [], 0
+    for c in cuts:
+        if c - first >= min_ticks:
+            bounds.append((first, c))
+            first = c
+    bounds.append((first, horizon))
+    order = np.argsort(cap, kind="stable")
+    starts = np.searchsorted(cap[order], [b[0] for b in bounds], side="left")
+    ends = np.searchsorted(cap[order], [b[1] for b in bounds], side="left")
+    return [
+        Window(lo, hi, np.sort(rows[order[s:e]]))
+        for (lo, hi), s, e in zip(bounds, starts.tolist(), ends.tolist(), strict=True)
+    ]
+
+
+def window_trace(trace: Trace, window: Window) -> Trace:
+    """The trace of one window: its ticks and frames, re-based to start at tick 0."""
+    lo, hi = window.first_tick, window.end_tick
+    frames = trace.frames.iloc[window.frame_rows].reset_index(drop=True)
+    frames = frames.assign(
+        capture_tick=frames["capture_tick"] - lo,
+        deadline_tick=np.minimum(frames["deadline_tick"], trace.horizon_ticks) - lo,
+    )
+    frames = frames[frames["deadline_tick"] > frames["capture_tick"]].reset_index(drop=True)
+    return Trace(
+        config=trace.config,
+        horizon_ticks=hi - lo,
+        ul_bpss=trace.ul_bpss[:, lo:hi],
+        dl_bpss=trace.dl_bpss[:, lo:hi],
+        frames=frames,
+    )
+
+
+@dataclass(frozen=True)
+class WindowedResult:
+    """[lp]'s optimum as the sum of its windows' and what each window and robot holds.
+
+    ``windows``: one row per window (``first_tick``, ``end_tick``, ``frames``, ``variables``,
+    ``constraints``, ``optimum``, ``solver``, ``status``, ``build_time_s``, ``solve_time_s``,
+    ``resumed``: read from the journal); ``stations``: the optimum's frames per robot.
+    """
+
+    optimum: float
+    status: str
+    windows: pd.DataFrame
+    stations: pd.DataFrame
+
+    @property
+    def solve_time_s(self) -> float:
+        return float(self.windows["solve_time_s"].sum())
+
+    @property
+    def n_variables(self) -> int:
+        return int(self.windows["variables"].sum())
+
+
+def solve_window(trace: Trace, solver: str) -> dict[str, Any]:
+    """One window's optimum, timings and frames delivered per station (a picklable task)."""
+    r = offline_optimum(trace, solver=solver)
+    stations = trace.frames["station"].to_numpy()[r.frame_rows] if r.n_frames else np.zeros(0)
+    per_station = np.bincount(
+        stations.astype(np.int64), weights=r.delivered, minlength=trace.n_stations
+    )
+    return {
+        "frames": r.n_frames,
+        "variables": r.n_variables,
+        "constraints": r.n_constraints,
+        "optimum": r.optimum,
+        "solver": r.solver,
+        "status": r.status,
+        "build_time_s": r.build_time_s,
+        "solve_time_s": r.solve_time_s,
+        "stations": per_station.tolist(),
+    }
+
+
+def _in_process(
+    fn: Callable[..., Any], tasks: Sequence[tuple[Any, ...]]
+) -> Iterator[tuple[int, Any]]:
+    for i, task in enumerate(tasks):
+        yield i, fn(*task)
+
+
+def _fingerprint(trace: Trace, windows: list[Window], solver: str) -> str:
+    h = hashlib.sha256()
+    for part in (trace.ul_bpss, trace.dl_bpss, trace.frames[list(Trace.COLUMNS)].to_numpy()):
+        h.update(np.ascontiguousarray(part).tobytes())
+    h.update(json.dumps([[w.first_tick, w.end_tick] for w in windows] + [solver]).encode())
+    return h.hexdigest()[:16]
+
+
+def _read_journal(path: Path, key: str) -> dict[int, dict[str, Any]]:
+    """The windows a journal for the same trace, cuts and solver holds (others: ignored)."""
+    done: dict[int, dict[str, Any]] = {}
+    if not path.is_file():
+        return done
+    for line in path.read_text().splitlines():
+        try:
+            entry = json.loads(line)
+        except json.JSONDecodeError:  # a line cut by a kill: that window is solved again
+            continue
+        if isinstance(entry, dict) and entry.get("key") == key and entry.get("status") == "optimal":
+            done[int(entry["window"])] = entry
+    return done
+
+
+def solve_windows(
+    trace: Trace,
+    *,
+    solver: str = "auto",
+    min_ticks: int = 200,
+    mapper: Mapper | None = None,
+    journal: str | Path | None = None,
+    progress: Callable[[int, int], None] | None = None,
+) -> WindowedResult:
+    """Solve [lp] window by window (:func:`split_windows`); the optimum is the monolithic one.
+
+    ``mapper`` runs the windows (default: in this process, in order); ``journal`` (a file)
+    records each finished window, and a later call with the same trace, cuts and solver
+    reuses them; ``progress(done, total)`` is called as windows finish.
+    """
+    windows = split_windows(trace, min_ticks=min_ticks)
+    key = _fingerprint(trace, windows, solver)
+    path = Path(journal) if journal is not None else None
+    done = _read_journal(path, key) if path is not None else {}
+    todo = [i for i in range(len(windows)) if i not in done]
+    tasks = [(window_trace(trace, windows[i]), solver) for i in todo]
+    results: dict[int, dict[str, Any]] = {i: {**done[i], "resumed": True} for i in done}
+    if progress is not None:
+        progress(len(results), len(windows))
+    for j, record in (mapper or _in_process)(solve_window, tasks):
+        i = todo[j]
+        results[i] = {**record, "resumed": False}
+        if path is not None:
+            with path.open("a") as fh:
+                fh.write(json.dumps({"key": key, "window": i, **record}) + "\n")
+        if progress is not None:
+            progress(len(results), len(windows))
+    rows = [
+        {"first_tick": w.first_tick, "end_tick": w.end_tick, **results[i]}
+        for i, w in enumerate(windows)
+    ]
+    stations = np.sum([r.pop("stations") for r in rows], axis=0)
+    table = pd.DataFrame(rows)
+    ok = bool((table["status"] == "optimal").all())
+    return WindowedResult(
+        optimum=float(table["optimum"].sum()) if ok else float("nan"),
+        status="optimal" if ok else "; ".join(sorted(set(table["status"]) - {"optimal"})),
+        windows=table,
+        stations=pd.DataFrame(
+            {"station": np.arange(trace.n_stations), "frames": np.asarray(stations, dtype=float)}
+        ),
+    )
