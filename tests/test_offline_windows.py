@@ -125,3 +125,17 @@ def test_sparse_assembly_has_the_readable_models_optimum_on_the_instances(path: 
 def test_only_the_bounds_the_chains_do_not_imply_are_kept_for_the_interior_point():
     lp = build_offline_lp(_random_trace(7))
     assert lp.bounded is not None and np.unique(lp.bounded).size < lp.n_variables / 3
+
+
+@pytest.mark.slow
+def test_ray_gives_the_same_windows_bit_for_bit(tmp_path: Path):
+    from codesign_mb.studies.offline_lp import solve_instance
+
+    trace = generate_trace(CHANNEL_PRESETS["paper"], 12, steps=20, reliability=0.2, seed=3)
+    path = tmp_path / "t.json"
+    trace.save(path)
+    local = solve_instance(path, workers=1)
+    ray = solve_instance(path, workers=2, backend="ray")
+    assert local["windows"] > 1
+    assert ray["per_window"] == local["per_window"]
+    assert ray["optimum_frames"] == local["optimum_frames"]

@@ -51,6 +51,18 @@ def register(app: typer.Typer) -> None:
         workers: Annotated[
             int, typer.Option("--workers", "-j", help="Processes solving windows.", min=1)
         ] = 1,
+        backend: Annotated[
+            str,
+            typer.Option("--backend", help="Where windows run: local (the process pool) or ray."),
+        ] = "local",
+        address: Annotated[
+            str | None,
+            typer.Option(
+                "--address",
+                help="Ray cluster for --backend ray (auto, ray://host:10001); none starts a "
+                "local instance. \\[default: none]",
+            ),
+        ] = None,
         journal: Annotated[
             Path | None,
             typer.Option(
@@ -75,6 +87,8 @@ def register(app: typer.Typer) -> None:
                 compare=compare,
                 windows=windows,
                 workers=workers,
+                backend=backend,
+                address=address,
                 journal=journal,
                 progress=progress,
             )

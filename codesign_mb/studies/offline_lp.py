@@ -9,7 +9,7 @@ and convex allocators deliver when replayed on the same trace.
 from __future__ import annotations
 
 import functools
-from collections.abc import Callable
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -71,20 +71,29 @@ def solve_instance(
     compare: bool = False,
     windows: bool = True,
     workers: int | None = 1,
+    backend: str = "local",
+    address: str | None = None,
     journal: str | Path | None = None,
     progress: Callable[[int, int], None] | None = None,
 ) -> dict:
     """Solve the instance at ``path``; with ``compare``, the allocators' frames and gaps.
 
     ``windows``: by independent windows (:mod:`codesign_mb.wifi.offline_windows`, the same
-    optimum), solved by ``workers`` processes of the project's pool, finished windows
-    recorded in ``journal`` (a killed solve resumes); else as one LP.
+    optimum), solved by ``workers`` processes of the project's pool (``backend="local"``) or
+    as Ray tasks (``"ray"``, on the cluster at ``address`` or a local instance), finished
+    windows recorded in ``journal`` (a killed solve resumes); else as one LP.
     """
     check_workers(workers, 1)
+    if backend not in ("local", "ray"):
+        raise ValueError(f"backend must be local or ray, got {backend!r}")
     trace = Trace.load(path)
     record: dict[str, Any] = {"instance": str(path)}
     if windows:
-        mapper = functools.partial(imap, workers=workers)
+        mapper = (
+            functools.partial(imap, workers=workers)
+            if backend == "local"
+            else functools.partial(_on_ray, workers=workers, address=address)
+        )
         result = solve_windows(
             trace, solver=solver, mapper=mapper, journal=journal, progress=progress
         )
@@ -128,3 +137,23 @@ def solve_instance(
             record[f"{name}_solver_fallbacks"] = replayed.fallbacks.total
             record[f"{name}_gap"] = (optimum - delivered) / optimum if optimum > 0 else 0.0
     return record
+
+
+def _apply(call: tuple[Callable[..., Any], tuple[Any, ...]], index: int) -> Any:
+    fn, args = call
+    return fn(*args)
+
+
+def _on_ray(
+    fn: Callable[..., Any],
+    tasks: Sequence[tuple[Any, ...]],
+    *,
+    workers: int | None,
+    address: str | None,
+) -> Iterator[tuple[int, Any]]:
+    """A window mapper over Ray tasks (the sweeps' Ray backend, :func:`iter_ray`)."""
+    from codesign_mb.studies.sweep_ray import iter_ray
+
+    pending = [(str(i), (fn, task), i) for i, task in enumerate(tasks)]
+    for key, result in iter_ray(_apply, pending, workers, address):
+        yield int(key), result
