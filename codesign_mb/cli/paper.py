@@ -34,7 +34,7 @@ __all__ = ["paper_command", "readme_command", "register"]
 
 _STUDY_NAMES = (
     "lqg, table_realistic, table_variable, table_model_free, table_paper, "
-    "table_learned_realistic, fig_cn, fig_wifi, figures"
+    "table_learned_realistic, table_learned_variable, fig_cn, fig_wifi, figures"
 )
 """The names of :data:`codesign_mb.studies.paper_studies.STUDIES` (``--help`` imports no study)."""
 

@@ -59,9 +59,11 @@ TABLE_STUDIES: dict[str, tuple[str, str]] = {
     "table_model_free": ("paper", "model-free"),
     "table_paper": ("paper", "all"),
     "table_learned_realistic": ("realistic", "learned"),
+    "table_learned_variable": ("variable", "learned"),
 }
 """Table study -> (scenario, pipeline). The learned rows' checkpoints are the paper scenario's,
-but for ``table_learned_realistic``'s (the learned stack trained on ``realistic``, issue 30)."""
+but for ``table_learned_*``'s (the learned stack trained on ``realistic``, issue 30; on
+``variable`` it meets belts it was not trained on)."""
 
 POOLED_SEEDS: dict[str, int] = {"table_model_free": 3}
 """Table study -> how many evaluation root seeds it pools (the set's root and the next ones):

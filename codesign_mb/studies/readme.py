@@ -58,6 +58,7 @@ FIGURES: dict[str, dict[str, str]] = {
     },
     "table_model_free": {"fig_pareto.png": "fig_pareto_model_free.png"},
     "table_learned_realistic": {"fig_pareto.png": "fig_pareto_learned_realistic.png"},
+    "table_learned_variable": {"fig_pareto.png": "fig_pareto_learned_variable.png"},
     "table_paper": {"fig_pareto.png": "fig_pareto_paper.png", "fig_lat.png": "fig_lat_paper.png"},
     "fig_cn": {"fig_cn.png": "fig_cn.png"},
     "fig_wifi": {"fig_wifi.png": "fig_wifi.png"},

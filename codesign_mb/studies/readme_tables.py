@@ -470,6 +470,7 @@ SECTIONS: dict[str, Callable[[Study, str], str]] = {
     "table_model_free": table_section,
     "table_paper": table_section,
     "table_learned_realistic": table_section,
+    "table_learned_variable": table_section,
     "fig_cn": fig_cn_section,
     "fig_wifi": fig_wifi_section,
 }

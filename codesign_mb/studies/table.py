@@ -231,7 +231,7 @@ class TableConfig:
         return self.seeds or (self.seed,)
 
     def table_rows(self) -> tuple[TableRow, ...]:
-        return self.rows or PIPELINES[self.pipeline]()
+        return self.rows or PIPELINES[self.pipeline](self.scenario)
 
     def with_references(self) -> bool:
         """Whether the table gets its reference rows (see ``references``)."""

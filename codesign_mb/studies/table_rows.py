@@ -36,6 +36,7 @@ from codesign_mb.studies.tuned import TUNED, rule_threshold
 __all__ = [
     "CODESIGN_RULE_ROW",
     "HYBRID_CODESIGN_ROW",
+    "LEARNED_SCENARIOS",
     "MODEL_FREE_CODESIGN_ROW",
     "PIPELINES",
     "PIPELINE_PLANTS",
@@ -246,7 +247,7 @@ _LSTM = ComponentSpec("lstm", "checkpoints/stage_d_model_free_lstm/lstm.pt")
 _MODEL_FREE_LSTM_QOS = ComponentSpec("learned", "checkpoints/stage_d_model_free_lstm/qos")
 
 
-def model_free_rows() -> tuple[TableRow, ...]:
+def model_free_rows(scenario: str | None = None) -> tuple[TableRow, ...]:
     """The paper's Table I rows (latency fixed at one step), and the hybrid co-design.
 
     The learned rows read stage D's model-free LSTM (``stage_d_model_free_lstm/``): on the
@@ -271,7 +272,7 @@ def model_free_rows() -> tuple[TableRow, ...]:
     )
 
 
-def model_based_rows() -> tuple[TableRow, ...]:
+def model_based_rows(scenario: str | None = None) -> tuple[TableRow, ...]:
     """The model-based counterparts of Table I: MPC, the predictor, the covariance rule; and
     the belt-aware stack (uncertainty-aware MPC, IMM predictor) with the event-triggered rule
     and the QoS planner."""
@@ -284,7 +285,7 @@ def model_based_rows() -> tuple[TableRow, ...]:
     )
 
 
-def all_rows() -> tuple[TableRow, ...]:
+def all_rows(scenario: str | None = None) -> tuple[TableRow, ...]:
     """The head-to-head rows: {static, rule, SAC} QoS x {SAC + MLP, MPC + predictor}, ...
 
     ... the mixed pairs with the QoS policies that do not depend on who they serve (SAC +
@@ -331,32 +332,36 @@ LEARNED_CODESIGN_ROW = "BC+SAC actor + GRU estimator, model-free SAC QoS (co-des
 fine-tuned by SAC, whose success is the clone's: models/checkpoints/README.md) behind the
 stage-B Gaussian sequence estimator, stage C's SAC QoS policy on that estimator's belief."""
 
-_ACTOR_REALISTIC = ComponentSpec("sac", "checkpoints/stage_a_realistic/model.zip")
-_SEQUENCE = ComponentSpec("sequence", "checkpoints/stage_b_sequence_realistic/sequence.pt")
-_LEARNED_QOS = ComponentSpec("learned", "checkpoints/stage_c_learned_realistic")
+LEARNED_SCENARIOS = ("realistic", "variable")
+"""The scenarios the learned stack is trained on (``checkpoints/stage_{a,b,c}_*_<scenario>``):
+``variable``'s packet carries the belt velocity, so ``realistic``'s checkpoints cannot read it."""
 
 
-def learned_rows() -> tuple[TableRow, ...]:
-    """The learned stack on ``realistic`` stage by stage: each row swaps one stage with the
-    model-based one, so a reader sees which learned stage costs what (the references add
-    each stack's blind, oracle and static rows and random at each row's budget). The belt IMM
-    cannot run behind the learned actor: its output has one entry more than the state layout
-    the actor reads (14 vs 13)."""
+def learned_rows(scenario: str | None = None) -> tuple[TableRow, ...]:
+    """The learned stack on ``scenario`` (``realistic`` unless ``variable``) stage by stage:
+    each row swaps one stage with the model-based one, so a reader sees which learned stage
+    costs what (the references add each stack's blind, oracle and static rows and random at
+    each row's budget). The belt IMM cannot run behind the learned actor: its output has one
+    entry more than the state layout the actor reads (14 vs 13)."""
+    trained = scenario if scenario in LEARNED_SCENARIOS else "realistic"
+    actor = ComponentSpec("sac", f"checkpoints/stage_a_{trained}/model.zip")
+    sequence = ComponentSpec("sequence", f"checkpoints/stage_b_sequence_{trained}/sequence.pt")
+    qos = ComponentSpec("learned", f"checkpoints/stage_c_learned_{trained}")
     return (
-        TableRow(LEARNED_CODESIGN_ROW, _ACTOR_REALISTIC, _SEQUENCE, _LEARNED_QOS),
-        TableRow("BC+SAC actor + GRU estimator, static QoS", _ACTOR_REALISTIC, _SEQUENCE, _STATIC),
-        TableRow("MPC + GRU estimator, model-free SAC QoS", _MPC_GATED, _SEQUENCE, _LEARNED_QOS),
+        TableRow(LEARNED_CODESIGN_ROW, actor, sequence, qos),
+        TableRow("BC+SAC actor + GRU estimator, static QoS", actor, sequence, _STATIC),
+        TableRow("MPC + GRU estimator, model-free SAC QoS", _MPC_GATED, sequence, qos),
         TableRow(PLANNER_ROW, _MPC_GATED, _BELT_IMM, _planner()),
     )
 
 
-PIPELINES: dict[str, Callable[[], tuple[TableRow, ...]]] = {
+PIPELINES: dict[str, Callable[[str | None], tuple[TableRow, ...]]] = {
     "model-free": model_free_rows,
     "model-based": model_based_rows,
     "all": all_rows,
     "learned": learned_rows,
 }
-"""Pipeline name -> its default rows."""
+"""Pipeline name -> its default rows on a scenario (``None``: the pipeline's own plants)."""
 
 PIPELINE_PLANTS: dict[str, tuple[str, ...]] = {
     "model-free": ("0.2",),
