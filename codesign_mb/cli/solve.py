@@ -21,7 +21,9 @@ def register(app: typer.Typer) -> None:
         instance: Annotated[
             Path,
             typer.Argument(
-                help="Instance file (JSON trace, format in solvers/README.md).", dir_okay=False
+                help="Instance file: a JSON or Parquet (.parquet, read window by window) trace, "
+                "formats in solvers/README.md.",
+                dir_okay=False,
             ),
         ],
         solver: Annotated[

@@ -20,6 +20,7 @@ from codesign_mb.cli.common import (
     explicit,
     load_config,
     note,
+    progress_bar,
     track,
 )
 
@@ -81,7 +82,14 @@ def phy_table_command(
 
 
 def trace_command(
-    out: Annotated[Path, typer.Argument(help="Instance file to write (JSON).", dir_okay=False)],
+    out: Annotated[
+        Path,
+        typer.Argument(
+            help="Instance file to write: JSON, or Parquet if it ends in .parquet (row groups "
+            "of ticks, solved window by window).",
+            dir_okay=False,
+        ),
+    ],
     robots: Annotated[int, typer.Option("--robots", help="Number of robots.")] = 6,
     steps: Annotated[int, typer.Option("--steps", help="Control steps (40 ms each).")] = 10,
     reliability: Annotated[
@@ -96,18 +104,24 @@ def trace_command(
     seed: SeedOption = 0,
     as_json: JsonOption = False,
 ) -> None:
-    """Record a static-QoS traffic trace as an instance for ``codesign solve``."""
+    """Record a static-QoS traffic trace as an instance for ``codesign solve``.
+
+    The trace is recorded whole, then written (Parquet: one row group of ticks at a time, the
+    progress bar counting them).
+    """
     from codesign_mb.studies.offline_lp import write_trace
 
-    t = write_trace(
-        out,
-        channel=channel,
-        robots=robots,
-        steps=steps,
-        reliability=reliability,
-        latency_steps=latency,
-        seed=seed,
-    )
+    with progress_bar("row groups", disable=as_json) as progress:
+        t = write_trace(
+            out,
+            channel=channel,
+            robots=robots,
+            steps=steps,
+            reliability=reliability,
+            latency_steps=latency,
+            seed=seed,
+            progress=progress,
+        )
     note(f"wrote {out} ({len(t.frames)} frames, {t.horizon_ticks} ticks)")
     if as_json:
         summary = {"instance": str(out), "robots": t.n_stations, "frames": len(t.frames)}

@@ -1,6 +1,7 @@
 """Instances of the offline allocation LP: recorded (``codesign wifi trace``) and solved.
 
-:func:`write_trace` records a static-QoS trace on a capacity-study cell as an instance file;
+:func:`write_trace` records a static-QoS trace on a capacity-study cell as an instance file
+(JSON, or Parquet for a path ending in ``.parquet``: :mod:`codesign_mb.wifi.trace_parquet`);
 what ``codesign solve`` prints: the optimum of :func:`~codesign_mb.wifi.offline.offline_optimum`
 (the most frames any scheduler delivers in time on the trace) and, optionally, what the greedy
 and convex allocators deliver when replayed on the same trace.
@@ -19,8 +20,9 @@ from codesign_mb.network.qos import QosRequest
 from codesign_mb.studies.fig_wifi import CHANNEL_PRESETS
 from codesign_mb.wifi.cell import generate_trace
 from codesign_mb.wifi.offline import offline_optimum
-from codesign_mb.wifi.offline_windows import solve_windows
+from codesign_mb.wifi.offline_windows import TraceSource, solve_windows
 from codesign_mb.wifi.sim import TRACE_CELLS_CAP, Trace, replay
+from codesign_mb.wifi.trace_parquet import ParquetTrace, save_parquet
 
 __all__ = ["solve_instance", "write_trace"]
 
@@ -34,11 +36,15 @@ def write_trace(
     reliability: float = 1.0,
     latency_steps: int = 1,
     seed: int = 0,
+    progress: Callable[[int, int], None] | None = None,
 ) -> Trace:
-    """Record a static-QoS traffic trace on a :data:`CHANNEL_PRESETS` cell and save it (JSON).
+    """Record a static-QoS traffic trace on a :data:`CHANNEL_PRESETS` cell and save it.
 
-    The instance is what ``codesign solve`` and the allocation LP read. Its size, robots x
-    ticks, is capped (:data:`~codesign_mb.wifi.sim.TRACE_CELLS_CAP`) before anything runs.
+    The instance is what ``codesign solve`` and the allocation LP read: JSON, or Parquet when
+    ``out`` ends in ``.parquet`` (row groups of ticks; ``progress(done, total)`` per group
+    written). The recorder (:func:`~codesign_mb.wifi.cell.generate_trace`) returns the trace
+    whole, so its size, robots x ticks, is capped
+    (:data:`~codesign_mb.wifi.sim.TRACE_CELLS_CAP`) before anything runs.
     """
     if channel not in CHANNEL_PRESETS:
         raise ValueError(f"channel must be one of {sorted(CHANNEL_PRESETS)}, got {channel!r}")
@@ -60,7 +66,10 @@ def write_trace(
     )
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    trace.save(out)
+    if out.suffix == ".parquet":
+        save_parquet(trace, out, progress=progress)
+    else:
+        trace.save(out)
     return trace
 
 
@@ -82,11 +91,16 @@ def solve_instance(
     optimum), solved by ``workers`` processes of the project's pool (``backend="local"``) or
     as Ray tasks (``"ray"``, on the cluster at ``address`` or a local instance), finished
     windows recorded in ``journal`` (a killed solve resumes); else as one LP.
+
+    A Parquet instance (``.parquet``) solved by windows without ``compare`` is read by window
+    (:class:`~codesign_mb.wifi.trace_parquet.ParquetTrace`): the frames table whole, each
+    window's channel as it is solved; otherwise the instance is read whole.
     """
     check_workers(workers, 1)
     if backend not in ("local", "ray"):
         raise ValueError(f"backend must be local or ray, got {backend!r}")
-    trace = Trace.load(path)
+    streamed = windows and not compare and Path(path).suffix == ".parquet"
+    trace: TraceSource = ParquetTrace.open(path) if streamed else Trace.load(path)
     record: dict[str, Any] = {"instance": str(path)}
     if windows:
         mapper = (
@@ -116,6 +130,7 @@ def solve_instance(
             per_robot=result.stations["frames"].round(9).tolist(),
         )
     else:
+        assert isinstance(trace, Trace)  # read whole: streamed only by windows
         mono = offline_optimum(trace, solver=solver)
         optimum = mono.optimum
         record.update(
@@ -130,6 +145,7 @@ def solve_instance(
             constraints=mono.n_constraints,
         )
     if compare:
+        assert isinstance(trace, Trace)
         for name in ("greedy", "convex"):
             replayed = replay(trace, name)
             delivered = replayed.delivered

@@ -19,6 +19,12 @@ blocks), so that a solver call is never spent on a handful of variables; they ar
 any order by any ``mapper`` (the project's process pool, :func:`codesign_mb.evaluation.pool.
 imap`, or Ray) and, given a ``journal`` file, a killed solve resumes with the windows it had
 finished.
+
+A trace comes from memory (:class:`~codesign_mb.wifi.sim.Trace`) or from any
+:class:`TraceSource`, such as a Parquet trace read by window
+(:class:`codesign_mb.wifi.trace_parquet.ParquetTrace`): the cuts need its frames table only,
+and each window's channel is read when that window is solved (in the worker, for a pool), so
+the channel of the whole trace is never in memory at once.
 """
 
 from __future__ import annotations
@@ -28,19 +34,49 @@ import json
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 import pandas as pd
 from numpy.typing import NDArray
 
+from codesign_mb.wifi.config import WifiConfig
 from codesign_mb.wifi.offline import offline_optimum
 from codesign_mb.wifi.sim import Trace
 
-__all__ = ["Window", "WindowedResult", "solve_windows", "split_windows", "window_trace"]
+__all__ = [
+    "TraceSource",
+    "Window",
+    "WindowedResult",
+    "solve_windows",
+    "split_windows",
+    "window_trace",
+]
 
 Mapper = Callable[[Callable[..., Any], Sequence[tuple[Any, ...]]], Iterable[tuple[int, Any]]]
 """``mapper(fn, tasks)`` yields ``(task index, fn(*task))`` for every task, in any order."""
+
+
+class TraceSource(Protocol):
+    """What the windows need of a trace: its frames whole, its channel by tick range."""
+
+    @property
+    def config(self) -> WifiConfig: ...
+
+    @property
+    def horizon_ticks(self) -> int: ...
+
+    @property
+    def n_stations(self) -> int: ...
+
+    @property
+    def frames(self) -> pd.DataFrame: ...
+
+    def channel(
+        self, first_tick: int, end_tick: int
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """``ul_bpss`` and ``dl_bpss`` of ticks ``[first_tick, end_tick)``."""
+        ...
 
 
 @dataclass(frozen=True)
@@ -52,7 +88,7 @@ class Window:
     frame_rows: NDArray[np.int64]
 
 
-def _lives(trace: Trace) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64]]:
+def _lives(trace: TraceSource) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64]]:
     """The frames [lp] may hold (both hops deliver them): rows, captures, clipped deadlines."""
     f = trace.frames
     keep = ((f["ul_ok"] != 0) & (f["dl_ok"] != 0)).to_numpy()
@@ -62,7 +98,7 @@ def _lives(trace: Trace) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[
     return rows, cap, dead
 
 
-def split_windows(trace: Trace, *, min_ticks: int = 200) -> list[Window]:
+def split_windows(trace: TraceSource, *, min_ticks: int = 200) -> list[Window]:
     """The horizon cut at every tick boundary no frame's life spans, windows merged up to at
     least ``min_ticks`` ticks (the last may be shorter). One window when frames are always in
     flight."""
@@ -90,8 +126,31 @@ def split_windows(trace: Trace, *, min_ticks: int = 200) -> list[Window]:
     ]
 
 
-def window_trace(trace: Trace, window: Window) -> Trace:
-    """The trace of one window: its ticks and frames, re-based to start at tick 0."""
+@dataclass(frozen=True)
+class PendingWindow:
+    """A window whose channel is still in its source: read by :meth:`load` where it is solved.
+
+    ``frames`` are the window's, re-based to its first tick; ``source`` is pickled to a
+    worker without its frames table (:class:`~codesign_mb.wifi.trace_parquet.ParquetTrace`).
+    """
+
+    source: TraceSource
+    first_tick: int
+    end_tick: int
+    frames: pd.DataFrame
+
+    def load(self) -> Trace:
+        ul, dl = self.source.channel(self.first_tick, self.end_tick)
+        return Trace(
+            config=self.source.config,
+            horizon_ticks=self.end_tick - self.first_tick,
+            ul_bpss=ul,
+            dl_bpss=dl,
+            frames=self.frames,
+        )
+
+
+def _pending(trace: TraceSource, window: Window) -> PendingWindow:
     lo, hi = window.first_tick, window.end_tick
     frames = trace.frames.iloc[window.frame_rows].reset_index(drop=True)
     frames = frames.assign(
@@ -99,13 +158,12 @@ def window_trace(trace: Trace, window: Window) -> Trace:
         deadline_tick=np.minimum(frames["deadline_tick"], trace.horizon_ticks) - lo,
     )
     frames = frames[frames["deadline_tick"] > frames["capture_tick"]].reset_index(drop=True)
-    return Trace(
-        config=trace.config,
-        horizon_ticks=hi - lo,
-        ul_bpss=trace.ul_bpss[:, lo:hi],
-        dl_bpss=trace.dl_bpss[:, lo:hi],
-        frames=frames,
-    )
+    return PendingWindow(trace, lo, hi, frames)
+
+
+def window_trace(trace: TraceSource, window: Window) -> Trace:
+    """The trace of one window: its ticks and frames, re-based to start at tick 0."""
+    return _pending(trace, window).load()
 
 
 @dataclass(frozen=True)
@@ -131,8 +189,10 @@ class WindowedResult:
         return int(self.windows["variables"].sum())
 
 
-def solve_window(trace: Trace, solver: str) -> dict[str, Any]:
+def solve_window(trace: Trace | PendingWindow, solver: str) -> dict[str, Any]:
     """One window's optimum, timings and frames delivered per station (a picklable task)."""
+    if isinstance(trace, PendingWindow):
+        trace = trace.load()
     r = offline_optimum(trace, solver=solver)
     stations = trace.frames["station"].to_numpy()[r.frame_rows] if r.n_frames else np.zeros(0)
     per_station = np.bincount(
@@ -158,12 +218,35 @@ def _in_process(
         yield i, fn(*task)
 
 
-def _fingerprint(trace: Trace, windows: list[Window], solver: str) -> str:
+def _fingerprint(trace: TraceSource, windows: list[Window], solver: str) -> str:
+    """A hash of the channel (read window by window, tick-major), frames, cuts and solver:
+    the same for a trace in memory and in a Parquet file."""
     h = hashlib.sha256()
-    for part in (trace.ul_bpss, trace.dl_bpss, trace.frames[list(Trace.COLUMNS)].to_numpy()):
-        h.update(np.ascontiguousarray(part).tobytes())
+    for w in windows:
+        for part in trace.channel(w.first_tick, w.end_tick):
+            h.update(np.ascontiguousarray(part.T).tobytes())
+    h.update(np.ascontiguousarray(trace.frames[list(Trace.COLUMNS)].to_numpy()).tobytes())
     h.update(json.dumps([[w.first_tick, w.end_tick] for w in windows] + [solver]).encode())
     return h.hexdigest()[:16]
+
+
+class _Tasks(Sequence[tuple[Trace | PendingWindow, str]]):
+    """The windows to solve, each made when a mapper takes it (lazy: a trace read by window
+    is read one window at a time in this process, or in the workers of a pool)."""
+
+    def __init__(self, trace: TraceSource, windows: list[Window], solver: str) -> None:
+        self.trace, self.windows, self.solver = trace, windows, solver
+
+    def __len__(self) -> int:
+        return len(self.windows)
+
+    def __getitem__(self, i: Any) -> Any:
+        if isinstance(i, slice):
+            return [self[j] for j in range(*i.indices(len(self)))]
+        w = self.windows[i]
+        if isinstance(self.trace, Trace):  # in memory already: views of its arrays
+            return window_trace(self.trace, w), self.solver
+        return _pending(self.trace, w), self.solver
 
 
 def _read_journal(path: Path, key: str) -> dict[int, dict[str, Any]]:
@@ -182,7 +265,7 @@ def _read_journal(path: Path, key: str) -> dict[int, dict[str, Any]]:
 
 
 def solve_windows(
-    trace: Trace,
+    trace: TraceSource,
     *,
     solver: str = "auto",
     min_ticks: int = 200,
@@ -194,14 +277,15 @@ def solve_windows(
 
     ``mapper`` runs the windows (default: in this process, in order); ``journal`` (a file)
     records each finished window, and a later call with the same trace, cuts and solver
-    reuses them; ``progress(done, total)`` is called as windows finish.
+    reuses them; ``progress(done, total)`` is called as windows finish. ``trace`` is a
+    :class:`~codesign_mb.wifi.sim.Trace` or any :class:`TraceSource` (read by window).
     """
     windows = split_windows(trace, min_ticks=min_ticks)
-    key = _fingerprint(trace, windows, solver)
     path = Path(journal) if journal is not None else None
+    key = _fingerprint(trace, windows, solver) if path is not None else ""
     done = _read_journal(path, key) if path is not None else {}
     todo = [i for i in range(len(windows)) if i not in done]
-    tasks = [(window_trace(trace, windows[i]), solver) for i in todo]
+    tasks = _Tasks(trace, [windows[i] for i in todo], solver)
     results: dict[int, dict[str, Any]] = {i: {**done[i], "resumed": True} for i in done}
     if progress is not None:
         progress(len(results), len(windows))

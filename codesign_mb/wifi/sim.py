@@ -10,6 +10,7 @@ admitted frames form a :class:`Trace` (stored as an instance file, ``solvers/REA
 from __future__ import annotations
 
 import json
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -33,7 +34,15 @@ from codesign_mb.wifi.allocators import Allocator
 from codesign_mb.wifi.config import WifiConfig, make_allocator
 from codesign_mb.wifi.engine import ChannelEngine, FallbackCount, Frame
 
-__all__ = ["TRACE_CELLS_CAP", "TRACE_FORMAT", "ReplayResult", "Trace", "TraceFile", "replay"]
+__all__ = [
+    "TRACE_CELLS_CAP",
+    "TRACE_FORMAT",
+    "ReplayResult",
+    "Trace",
+    "TraceFile",
+    "check_frames",
+    "replay",
+]
 
 TRACE_FORMAT = "codesign-wifi-trace/1"
 
@@ -132,14 +141,32 @@ class Trace:
             ),
         )
 
+    def channel(
+        self, first_tick: int, end_tick: int
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """``ul_bpss`` and ``dl_bpss`` of ticks ``[first_tick, end_tick)`` (views)."""
+        return self.ul_bpss[:, first_tick:end_tick], self.dl_bpss[:, first_tick:end_tick]
+
     def save(self, path: str | Path) -> None:
+        """Write the instance file: Parquet if ``path`` ends in ``.parquet``, else JSON."""
+        if Path(path).suffix == ".parquet":
+            from codesign_mb.wifi.trace_parquet import save_parquet  # imports this module
+
+            save_parquet(self, path)
+            return
         Path(path).write_text(json.dumps(self.to_json()) + "\n")
 
     @classmethod
     def load(cls, path: str | Path) -> Trace:
+        """Read an instance file, Parquet (``.parquet``) or JSON; errors name the field and
+        the file."""
         path = Path(path)
         if not path.is_file():
             raise ValueError(f"instance file {str(path)!r} does not exist")
+        if path.suffix == ".parquet":
+            from codesign_mb.wifi.trace_parquet import load_parquet
+
+            return load_parquet(path)
         try:
             data = json.loads(path.read_text())
         except (json.JSONDecodeError, UnicodeDecodeError) as exc:
@@ -191,29 +218,36 @@ class TraceFile:
         object.__setattr__(self, "dl_bpss", dl)
 
     def _check_frames(self, n_stations: int) -> None:
-        unknown = sorted(set(self.frames) - set(Trace.COLUMNS))
-        missing = [c for c in Trace.COLUMNS if c not in self.frames]
-        if unknown or missing:
-            raise ValueError(
-                f"frames must have the columns {', '.join(Trace.COLUMNS)}; "
-                f"unknown {unknown}, missing {missing}"
-            )
-        lengths = {len(v) for v in self.frames.values()}
-        if len(lengths) > 1:
-            raise ValueError(f"frames columns must have one length, got lengths {sorted(lengths)}")
-        f = {c: np.asarray(v, dtype=np.int64) for c, v in self.frames.items()}
-        if not lengths or lengths == {0}:
-            return
-        check_range("frames.station", f["station"].max(), le=n_stations - 1)
-        for c in ("station", "step", "capture_tick", "ul_bits", "dl_bits"):
-            check_range(f"frames.{c}", f[c].min(), ge=0)
-        for c in ("ul_ok", "dl_ok"):
-            bad = f[c][(f[c] != 0) & (f[c] != 1)]
-            if bad.size:
-                raise ValueError(f"frames.{c} must be 0 or 1, got {int(bad[0])}")
-        late = f["deadline_tick"] - f["capture_tick"]
-        check_range("frames.deadline_tick - capture_tick", late.min(), ge=1)
-        check_range("frames.deadline_tick", f["deadline_tick"].max(), le=self.horizon_ticks)
+        check_frames(self.frames, n_stations, self.horizon_ticks)
+
+
+def check_frames(frames: Mapping[str, Any], n_stations: int, horizon_ticks: int) -> None:
+    """Raise ``ValueError`` naming the column unless ``frames`` (column -> values) is a frame
+    table of a trace of ``n_stations`` and ``horizon_ticks`` (the checks of :class:`TraceFile`,
+    shared with the Parquet form, :mod:`codesign_mb.wifi.trace_parquet`)."""
+    unknown = sorted(set(frames) - set(Trace.COLUMNS))
+    missing = [c for c in Trace.COLUMNS if c not in frames]
+    if unknown or missing:
+        raise ValueError(
+            f"frames must have the columns {', '.join(Trace.COLUMNS)}; "
+            f"unknown {unknown}, missing {missing}"
+        )
+    lengths = {len(v) for v in frames.values()}
+    if len(lengths) > 1:
+        raise ValueError(f"frames columns must have one length, got lengths {sorted(lengths)}")
+    f = {c: np.asarray(v, dtype=np.int64) for c, v in frames.items()}
+    if not lengths or lengths == {0}:
+        return
+    check_range("frames.station", f["station"].max(), le=n_stations - 1)
+    for c in ("station", "step", "capture_tick", "ul_bits", "dl_bits"):
+        check_range(f"frames.{c}", f[c].min(), ge=0)
+    for c in ("ul_ok", "dl_ok"):
+        bad = f[c][(f[c] != 0) & (f[c] != 1)]
+        if bad.size:
+            raise ValueError(f"frames.{c} must be 0 or 1, got {int(bad[0])}")
+    late = f["deadline_tick"] - f["capture_tick"]
+    check_range("frames.deadline_tick - capture_tick", late.min(), ge=1)
+    check_range("frames.deadline_tick", f["deadline_tick"].max(), le=horizon_ticks)
 
 
 @dataclass(frozen=True)
