@@ -1,14 +1,16 @@
-"""Fault injection (issue 18): a full results disk, a failing MPC solver, an allocator solver
-returning non-finite values, corrupt checkpoints and records. Each run completes with the
-fault counted in its results, or stops with one clear line, with every finished result
-intact. (A worker killed mid-episode: ``test_evaluate.py``, ``test_core.py``; the driver
-killed: ``test_resume.py``.)"""
+"""Fault injection (issues 18 and 35): a full results disk, a failing MPC solver, an
+allocator solver returning non-finite values, corrupt checkpoints and records, a results
+write killed half-way. Each run completes with the fault counted in its results, or stops
+with one clear line, with every finished result intact, and a rerun gives the undisturbed
+run's results. (A worker killed mid-episode, locally and on Ray: ``test_faults_pool.py``, and
+``test_evaluate.py``, ``test_core.py``; the driver killed: ``test_resume.py``.)"""
 
 from __future__ import annotations
 
 import errno
 import json
 import os
+import signal
 import zipfile
 from pathlib import Path
 from typing import Any
@@ -55,6 +57,19 @@ def _lines(records: Path) -> list[str]:
     return [line for p in sorted(records.glob("*.jsonl")) for line in p.read_text().splitlines()]
 
 
+def _stored(records: Path) -> dict[str, dict[str, Any]]:
+    """``<group>/<item>`` -> stored row (timings dropped) of every record line."""
+    rows = {}
+    for path in sorted(records.glob("*.jsonl")):
+        for line in path.read_text().splitlines():
+            record = json.loads(line)
+            row = {k: v for k, v in record["row"].items() if not k.endswith("_cpu_ms")}
+            rows[f"{path.stem}/{record['item']}"] = {
+                k: v for k, v in row.items() if k not in TIMING_COLUMNS
+            }
+    return rows
+
+
 def _count_runs(monkeypatch: pytest.MonkeyPatch) -> list[int]:
     calls: list[int] = []
     run = evaluate_module._Runner.run
@@ -97,6 +112,8 @@ def test_a_full_disk_stops_the_table_with_one_line_and_keeps_what_finished(
         "command to resume"
     ]
     assert len(_lines(out / ".records")) == 7 and not (out / "tab_p.parquet").exists()
+    kept = _stored(out / ".records")  # the finished episodes, whole, as the undisturbed run's
+    assert len(kept) == 7 and kept.items() <= _stored(reference / ".records").items()
 
     # The disk fills up again, now while the tables are written: the episodes are all kept.
     to_parquet = pd.DataFrame.to_parquet
@@ -116,6 +133,7 @@ def test_a_full_disk_stops_the_table_with_one_line_and_keeps_what_finished(
     )
     assert len(calls) == 20 - 7
     assert not list(out.glob(".tab_p_episodes*"))  # no temporary file left behind
+    assert _stored(out / ".records") == _stored(reference / ".records")  # all 20 kept
     result = runner.invoke(app, args)
     assert result.exit_code == 0, result.output
     assert len(calls) == 20 - 7  # nothing recomputed
@@ -278,3 +296,115 @@ def test_corrupt_bookkeeping_files_are_named_and_not_fatal(tmp_path: Path) -> No
     (study / "study.json").write_text("null")
     with pytest.warns(RuntimeWarning, match=f"{study / 'study.json'} is corrupt"):
         assert read_study(study) is None
+
+
+# -- a results write interrupted --------------------------------------------------------------
+_KILLED_WRITE = r"""
+import contextlib, os, signal, sys
+from pathlib import Path
+
+import pandas as pd
+
+from codesign_mb.core import results
+
+out, victim = Path(sys.argv[1]), sys.argv[2]
+atomic_write = results.atomic_write
+
+
+class HalfThenKilled:
+    # The file being written: its first write puts half its bytes on disk, then SIGKILL.
+    def __init__(self, fh):
+        self.fh = fh
+
+    def write(self, data):
+        self.fh.write(data[: max(1, len(data) // 2)])
+        self.fh.flush()
+        os.fsync(self.fh.fileno())
+        os.kill(os.getpid(), signal.SIGKILL)
+
+    def __getattr__(self, name):
+        return getattr(self.fh, name)
+
+
+@contextlib.contextmanager
+def killed_during(path, mode="wb"):
+    with atomic_write(path, mode) as fh:
+        yield HalfThenKilled(fh) if Path(path).name == victim else fh
+
+
+results.atomic_write = killed_during
+table = pd.DataFrame({"x": range(2000), "y": [0.5 * i for i in range(2000)]})
+results.write_results(out, table=table, config={"version": 2}, name="t")
+"""
+
+
+def test_a_killed_results_write_leaves_whole_files_and_no_mixed_table(tmp_path: Path) -> None:
+    """The writer is killed (``SIGKILL``) with half of a file written, in each of the three
+    files of a table (written in order parquet, csv, json): every file on disk is the old whole
+    one or the new whole one; the folder lists no table (the old metadata is removed first, so
+    never new rows under the old config); the half file, a temporary, is not taken for a
+    result; the rerun writes the new table whole."""
+    import subprocess
+    import sys
+
+    from codesign_mb.core.results import ResultsDir, write_results
+
+    old = pd.DataFrame({"x": range(3), "y": [1.0, 2.0, 3.0]})
+    new = pd.DataFrame({"x": range(2000), "y": [0.5 * i for i in range(2000)]})
+    read = {"t.parquet": pd.read_parquet, "t.csv": pd.read_csv}
+    for killed_in, replaced in (("t.parquet", ()), ("t.csv", ("t.parquet",)),
+                                ("t.json", ("t.parquet", "t.csv"))):  # fmt: skip
+        out = tmp_path / killed_in
+        write_results(out, table=old, config={"version": 1}, name="t")
+        assert ResultsDir(out).names == ["t"]
+        script = [sys.executable, "-c", _KILLED_WRITE, str(out), killed_in]
+        killed = subprocess.run(script, capture_output=True, text=True, timeout=120)
+        assert killed.returncode == -signal.SIGKILL, killed.stderr
+        for name, reader in read.items():
+            pd.testing.assert_frame_equal(reader(out / name), new if name in replaced else old)
+        assert not (out / "t.json").exists() and ResultsDir(out).names == []
+        [stray] = [p for p in out.iterdir() if p.name not in ("t.parquet", "t.csv")]
+        assert stray.name.startswith(f".{killed_in}.") and stray.suffix == ".tmp"  # half
+        assert stray.stat().st_size > 0
+        assert [p.name for p in out.glob("*.parquet")] == ["t.parquet"]
+        assert [p.name for p in out.glob("*.json")] == []
+        write_results(out, table=new, config={"version": 2}, name="t")  # the rerun
+        assert ResultsDir(out).names == ["t"] and ResultsDir(out).config("t") == {"version": 2}
+        for name, reader in read.items():
+            pd.testing.assert_frame_equal(reader(out / name), new)
+
+
+# -- a corrupt record of an evaluation run ----------------------------------------------------
+def test_corrupt_episode_records_are_named_recomputed_and_the_table_is_unchanged(
+    runner: CliRunner, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Two episode records of ``codesign evaluate`` damaged: one garbled past parsing (bytes
+    that are not even UTF-8), one changed so that it still parses (a success turned into a
+    failure, caught by its checksum). The rerun names both, recomputes only those two
+    episodes and writes the table of the undisturbed run."""
+    out = tmp_path / "out"
+    args = ["evaluate", "-n", "4", "--max-steps", "15", "-j", "1", "--controller", "scripted"]
+    args += ["--estimator", "none", "-o", str(out)]
+    assert runner.invoke(app, args).exit_code == 0
+    reference = pd.read_parquet(out / "evaluate.parquet")
+    [path] = (out / ".records").glob("*.jsonl")
+    lines = path.read_bytes().splitlines(keepends=True)
+    lines[1] = lines[1][:40] + b"\xff\xfe\x00garbled" + lines[1][60:]
+    assert b'"lifted": false' in lines[2]
+    lines[2] = lines[2].replace(b'"lifted": false', b'"lifted": true ')  # parses
+    path.write_bytes(b"".join(lines))
+    calls = _count_runs(monkeypatch)
+    with pytest.warns(RuntimeWarning) as caught:
+        result = runner.invoke(app, args)
+    assert result.exit_code == 0, result.output
+    warned = [str(w.message) for w in caught if "is corrupt" in str(w.message)]
+    assert len(warned) == 2, warned
+    for line, number, why in zip(warned, (2, 3), ("utf-8", "checksum does not match"), strict=True):
+        assert f"record file {path} line {number} is corrupt (" in line, line
+        assert why in line and line.endswith("its episode is computed again")
+    assert sorted(calls) == [1, 2]  # only those two
+    again = pd.read_parquet(out / "evaluate.parquet")
+    timing = [c for c in reference if c in TIMING_COLUMNS or c.endswith("_cpu_ms")]
+    pd.testing.assert_frame_equal(
+        again.drop(columns=timing), reference.drop(columns=timing), check_exact=True
+    )

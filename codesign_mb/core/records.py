@@ -19,9 +19,12 @@ that computed it, and reusing rows of another commit is reported (a ``RuntimeWar
 Rows round-trip exactly (floats by their shortest ``repr``, NaN and infinities included),
 and a run uses the decoded row of a fresh item as well, so a resumed table equals an
 uninterrupted one bit for bit. Each line is written by one ``write`` call, so a killed
-driver leaves whole lines; a line that does not parse (torn by a full disk or a system
-crash, or damaged) is reported by a ``RuntimeWarning`` naming the file and line, and its
-item is computed again.
+driver leaves whole lines. Each line ends with a checksum of the rest of it
+(``"sha256": <16 hex digits>``), so damage that still parses (a changed digit) is caught too.
+A line that does not parse (torn by a full disk or a system crash, or damaged) or does not
+match its checksum is reported by a ``RuntimeWarning`` naming the file and line, and its item
+is computed again. (Lines without a checksum, written before there was one, are read as
+they are.)
 """
 
 from __future__ import annotations
@@ -35,6 +38,7 @@ import json
 import math
 import os
 import pickle
+import re
 import warnings
 from collections.abc import Iterable, Iterator, Mapping
 from pathlib import Path
@@ -138,6 +142,29 @@ def _cached_digest(path: str, mtime_ns: int, size: int) -> str:
     return file_digest(path)
 
 
+# -- lines ----------------------------------------------------------------------------------------
+_CHECKSUM = re.compile(rb', "sha256": "([0-9a-f]{16})"\}\s*$')
+"""The end of a stored line: the checksum of the line without it."""
+
+
+def _checksum(body: bytes) -> str:
+    return hashlib.sha256(body).hexdigest()[:16]
+
+
+def _with_checksum(body: str) -> str:
+    """The JSON object ``body`` (``{...}``) with its checksum as its last member."""
+    return f'{body[:-1]}, "sha256": "{_checksum(body.encode())}"}}'
+
+
+def _verify(line: bytes, record: Mapping[str, Any]) -> None:
+    """``ValueError`` if ``line`` (which parsed as ``record``) does not match its checksum."""
+    if "sha256" not in record:
+        return  # written before lines had one
+    match = _CHECKSUM.search(line)
+    if match is None or _checksum(line[: match.start()] + b"}") != match.group(1).decode():
+        raise ValueError("its checksum does not match: the line was changed")
+
+
 # -- the store ----------------------------------------------------------------------------------
 class RecordStore:
     """The finished items of runs writing into one results folder (see the module docstring).
@@ -219,6 +246,7 @@ class RecordStore:
                 item, row = record["item"], record["row"]
                 if not isinstance(item, str) or not isinstance(row, dict):
                     raise ValueError("not an item and its row")
+                _verify(line, record)
             except (ValueError, KeyError, TypeError) as exc:
                 warnings.warn(
                     f"record file {path} line {number} is corrupt ({_short(exc)}); its "
@@ -235,7 +263,8 @@ class RecordStore:
 
         Raises ``OSError`` saying what is kept when the line cannot be written (a full disk).
         """
-        line = json.dumps({"item": item, "code": self.code, "row": dict(row)}, default=_plain)
+        body = json.dumps({"item": item, "code": self.code, "row": dict(row)}, default=_plain)
+        line = _with_checksum(body)
         stored: dict[str, Any] = json.loads(line)["row"]
         path = self.path(group)
         try:

@@ -9,8 +9,13 @@ Every experiment writes into one results folder, one *table* per ``name``::
 
 Each file is written to a temporary file in the same folder, flushed and ``fsync``-ed, then
 moved into place with ``os.replace`` (atomic on POSIX), so an interrupted run leaves either
-the previous complete file or none, never half a file. The ``.json`` metadata is written
-last: a table is complete when its metadata exists (:class:`ResultsDir` lists only those).
+the previous complete file or none, never half a file. A table's old ``.json`` metadata
+is removed before its other files are replaced and the new one is written last: a table is
+complete when its metadata exists (:class:`ResultsDir` lists only those), so a rewrite killed
+half-way leaves that table unlisted (each file the old or the new one, whole) until it is
+written again, never new rows under an old config.
+A killed write may leave its temporary file (``.<file>.<random>.tmp``), which no reader takes
+for a result.
 
 The table names and columns that ``codesign report`` understands are documented in
 :mod:`codesign_mb.studies.report`.
@@ -245,7 +250,8 @@ def write_results(
     ----------
     out_dir:
         The results folder (created if missing). Existing files of the same ``name`` are
-        replaced atomically; other tables in the folder are left alone.
+        replaced atomically, their metadata removed first (see the module docstring); other
+        tables in the folder are left alone.
     table:
         A tidy ``pandas.DataFrame``: string column names, one row per observation. A
         non-default index is turned into columns.
@@ -293,6 +299,10 @@ def write_results(
         (paths["csv"], "w", lambda fh: table.to_csv(fh, index=False)),
         (paths["json"], "w", lambda fh: fh.write(meta_text)),  # last: marks completion
     ]
+    # The old metadata goes first: a run killed between two files leaves no table listed
+    # (its files each whole, old or new), never new rows under the old config.
+    with contextlib.suppress(FileNotFoundError):
+        os.unlink(paths["json"])
     for path, mode, write in writers:
         with atomic_write(path, mode) as fh:
             write(fh)

@@ -16,7 +16,10 @@ import pandas as pd
 
 from codesign_mb.core.results import to_jsonable
 
-__all__ = ["iter_ray", "tune_hyperparameters"]
+__all__ = ["RAY_TASK_RETRIES", "iter_ray", "tune_hyperparameters"]
+
+RAY_TASK_RETRIES = 3
+"""Reruns of a Ray task whose worker died (Ray's default, stated: the tests rely on it)."""
 
 
 def iter_ray(
@@ -30,7 +33,9 @@ def iter_ray(
 
     ``address`` is a cluster (``"auto"``, ``"ray://host:10001"``); ``None`` starts a local
     instance with ``workers`` CPUs. A task's error is raised here; the tasks left are
-    cancelled.
+    cancelled. A task whose worker process dies (killed, out of memory, a lost node) is run
+    again, up to ``RAY_TASK_RETRIES`` times (tasks are pure functions of their arguments:
+    the same row).
     """
     try:
         import ray
@@ -46,7 +51,7 @@ def iter_ray(
     elif address:
         # Already connected (e.g. inside a Ray job or a test fixture): use that cluster.
         pass
-    remote = ray.remote(num_cpus=1)(task)
+    remote = ray.remote(num_cpus=1, max_retries=RAY_TASK_RETRIES)(task)
     refs = {remote.remote(trial, seed): key for key, trial, seed in pending}
     remaining = list(refs)
     try:
