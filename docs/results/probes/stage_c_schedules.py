@@ -10,7 +10,8 @@ finger opening). Schedules:
 * `hover`: q = 1 while the fingers close (0.045-0.077 m), `p` while they are open and the object
   is within 3 cm, `p_far` while open and farther, 0 once closed (object held).
 
-    .venv/bin/python docs/results/probes/stage_c_schedules.py 40 > docs/results/probes/stage_c_schedules.json
+    .venv/bin/python docs/results/probes/stage_c_schedules.py 40 \
+        > docs/results/probes/stage_c_schedules.json
 """
 
 from __future__ import annotations
@@ -62,7 +63,9 @@ def main(episodes: int) -> None:
     grid += [("hover", {"p": p, "p_far": pf}) for p in (0.2, 0.4) for pf in (0.0, 0.1)]
     rows = []
     for kind, knobs in grid:
-        r = evaluate_qos_agent(env, Schedule(offset, kind, **knobs), seeds=selection_seeds(episodes))
+        r = evaluate_qos_agent(
+            env, Schedule(offset, kind, **knobs), seeds=selection_seeds(episodes)
+        )
         rows.append({"schedule": kind, **knobs, "episodes": episodes, **r})
         print(json.dumps(rows[-1]), file=sys.stderr, flush=True)
     print(json.dumps({"config": str(CONFIG.name), "seed_set": "dev", "rows": rows}, indent=1))
