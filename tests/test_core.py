@@ -42,12 +42,14 @@ def test_seed_sets_are_named_and_disjoint_streams() -> None:
 
 
 def test_one_registry_builds_every_role_by_kind() -> None:
-    assert set(registry.KINDS) == {
+    assert set(registry.roles()) == {
         "controller",
         "estimator",
         "qos",
         "qos_feature",
         "plant",
+        "perception",
+        "linear_plant",
         "allocator",
     }
     assert "none" in registry.kinds("estimator") and "plain" not in registry.kinds("estimator")
@@ -63,6 +65,44 @@ def test_one_registry_builds_every_role_by_kind() -> None:
         registry.kinds("robot")
     with pytest.raises(ValueError, match="needs a checkpoint"):
         registry.factory("controller", ComponentSpec("sac"))
+
+
+def test_kinds_are_registered_at_the_edges_where_import_linter_sees_them() -> None:
+    """Each kind is registered by a kinds module of the package its factory lives in, and that
+    module imports the factory's module (for type checking): grimp, import-linter's graph, has
+    the edge, so the layer contracts check it; core names no package above it."""
+    import importlib.metadata
+
+    import grimp
+
+    graph = grimp.build_graph("codesign_mb", include_external_packages=False)
+    entries = importlib.metadata.entry_points(group=registry.ENTRY_POINT_GROUP)
+    modules = {e.name.partition(".")[0]: [] for e in entries}
+    for e in entries:
+        modules[e.name.partition(".")[0]].append(e.value)
+    checked = 0
+    for role, owners in modules.items():
+        for name in registry.kinds(role):
+            found = registry.kind(role, name)
+            targets = [found.target, *([found.config] if found.config else [])]
+            for target in targets:
+                module = target.partition(":")[0]
+                importers = [
+                    m for m in owners if graph.direct_import_exists(importer=m, imported=module)
+                ]
+                assert importers, (role, name, module, owners)
+                package = importers[0].rsplit(".", 1)[0]
+                assert module.startswith(package + "."), (role, name, module)
+                assert callable(registry.resolve(target)) or isinstance(
+                    registry.resolve(target), type
+                )
+                checked += 1
+    assert checked >= 31
+    core = {m for m in graph.modules if m.startswith("codesign_mb.core")}
+    above = {m for m in graph.modules if not m.startswith("codesign_mb.core")} - {"codesign_mb"}
+    assert not any(graph.direct_import_exists(importer=c, imported=a) for c in core for a in above)
+    with pytest.raises(ValueError, match="registered twice"):
+        registry.register("qos", "static", registry.Kind("codesign_mb.adaptation.base:RandomQos"))
 
 
 def _square(x: int) -> int:

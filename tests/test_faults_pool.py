@@ -21,7 +21,8 @@ import pytest
 from numpy.typing import NDArray
 
 from codesign_mb.control.scripted import ToyPickController
-from codesign_mb.core.registry import KINDS, Kind
+from codesign_mb.core import registry
+from codesign_mb.core.registry import Kind
 
 TABLE = """
 [table]
@@ -83,7 +84,7 @@ def killing_toy_pick(env: Any, at_step: int = 100) -> KillingToyPick:
 def killing_kind(monkeypatch: pytest.MonkeyPatch) -> None:
     """Register ``killing_toy_pick`` in the driver (workers get its import path)."""
     kind = Kind(f"{__name__}:killing_toy_pick", takes_env=True)
-    monkeypatch.setitem(KINDS["controller"], "killing_toy_pick", kind)
+    monkeypatch.setitem(registry._table("controller"), "killing_toy_pick", kind)
     monkeypatch.setenv("CODESIGN_NO_PROGRESS", "1")
     monkeypatch.delenv(KILL_MARKER, raising=False)
 

@@ -18,6 +18,7 @@ import pytest
 import scipy.linalg
 from gymnasium.utils.env_checker import check_env
 
+from codesign_mb.core import registry
 from codesign_mb.estimation.kalman import (
     IntermittentKalmanFilter,
     KalmanEstimator,
@@ -29,7 +30,6 @@ from codesign_mb.estimation.kalman import (
 )
 from codesign_mb.network import BernoulliLink, LinkObservationWrapper, QosRequest
 from codesign_mb.plants.linear import (
-    LINEAR_PLANTS,
     LinearPlantEnv,
     LinearPlantSpec,
     double_integrator,
@@ -151,12 +151,12 @@ def test_plants_are_the_sampled_continuous_models() -> None:
     unstable = math.exp(math.sqrt(1.1 * 9.81 / 0.5) * dt)
     assert pend.spectral_radius == pytest.approx(unstable, rel=1e-12)
     assert critical_arrival_lower_bound(pend.A) == pytest.approx(1 - unstable**-2, rel=1e-12)
-    assert set(LINEAR_PLANTS) == {"scalar", "double_integrator", "pendulum"}
+    assert set(registry.kinds("linear_plant")) == {"scalar", "double_integrator", "pendulum"}
     with pytest.raises(ValueError, match="plant"):
         make_linear_plant("segway")
 
 
-@pytest.mark.parametrize("name", sorted(LINEAR_PLANTS))
+@pytest.mark.parametrize("name", sorted(registry.kinds("linear_plant")))
 def test_env_passes_check_env_and_reports_the_truth(name: str) -> None:
     env = LinearPlantEnv(make_linear_plant(name), horizon=20)
     with warnings.catch_warnings():

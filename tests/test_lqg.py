@@ -22,10 +22,10 @@ from typer.testing import CliRunner
 from codesign_mb.adaptation.base import StaticQos
 from codesign_mb.cli.demo import register
 from codesign_mb.control.lqr import LqrController
+from codesign_mb.core import registry
 from codesign_mb.estimation.kalman import intermittent_riccati, steady_state_covariance
 from codesign_mb.network import BernoulliLink, LinkObservationWrapper
 from codesign_mb.plants.linear import (
-    LINEAR_PLANTS,
     LinearPlantEnv,
     make_linear_plant,
     scalar_unstable,
@@ -64,7 +64,7 @@ def test_lqr_rejects_bad_matrices_by_name(field: str, args: tuple) -> None:
         LqrController(*args)
 
 
-@pytest.mark.parametrize("name", sorted(LINEAR_PLANTS))
+@pytest.mark.parametrize("name", sorted(registry.kinds("linear_plant")))
 def test_riccati_cost_equals_the_closed_loop_stationary_cost(name: str) -> None:
     plant = make_linear_plant(name)
     n = plant.n_states

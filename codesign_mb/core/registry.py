@@ -1,47 +1,23 @@
-"""The one component registry: controllers, estimators, QoS policies, plants and allocators by kind.
+"""The one component registry: the mechanism (kind, spec, factory); the kinds live at the edges.
 
 Every table row, stage, sweep and CLI command names its pieces by ``{kind, checkpoint,
 options}`` (a :class:`ComponentSpec`), so the learned stack (SAC + MLP), the model-based one
-(MPC + predictor) and any mix run through the same code, without a branch on a type. The
-registry knows each kind by import path only (``"package.module:attribute"``): it imports
-nothing of the layers above it, and a spec becomes a picklable :class:`Factory` that a worker
-process calls on its own plant.
+(MPC + predictor) and any mix run through the same code, without a branch on a type.
 
-========== ================== ==========================================================
-role       kind               what
-========== ================== ==========================================================
-controller ``sac``            ``control.sac.SacController``: a SAC-trained actor (``checkpoint``)
-controller ``bc``             ``control.sac.SacController``: a behaviour-cloned actor (stage A's
-                              ``bc.zip``, the clone SAC starts from)
-controller ``mpc``            ``control.mpc.MpcController`` (``options``: its kwargs)
-controller ``scripted``       ``control.scripted.ScriptedPickController``
-controller ``toy_pick``       ``control.scripted.ToyPickController`` (toy plant only)
-estimator  ``none``           ``estimation.base.PassThroughEstimator`` (stale observation)
-estimator  ``mlp``/``lstm``   a learned estimator from ``checkpoint`` (``load_estimator``)
-estimator  ``sequence``       the Gaussian sequence estimator (``estimation.sequence``), likewise
-estimator  ``predictor``      ``estimation.predictor.DelayCompensatingPredictor``
-estimator  ``belt_imm``       ``estimation.belt_imm.BeltImmPredictor`` (switching belt, carried)
-qos        ``static``         ``adaptation.base.StaticQos`` (``options``)
-qos        ``random``         ``adaptation.base.RandomQos``: ``q = 1`` w.p. ``probability``
-qos        ``rule``           the covariance-triggered rule on a predictor replica
-qos        ``planner``        ``adaptation.planner.QosPlanner`` on a belt-aware predictor replica
-qos        ``age_rule``       ``adaptation.rules.AgeTriggeredQos``
-qos        ``learned``        ``adaptation.learned.LearnedQosPolicy`` (``checkpoint``: folder)
-qos_feat.  ``elapsed_time``   ``adaptation.learned.ElapsedTimeFeature`` (``t / T``)
-qos_feat.  ``predictor_std``  ``adaptation.learned.PredictorStdFeature`` on a predictor replica
-                              (hybrid: a model-based replica at the edge)
-qos_feat.  ``held_history``   ``adaptation.model_free_features.HeldHistoryFeature`` (model-free:
-                              ``t / T``, held-position differences, lift, from ``(y, zeta)``)
-qos_feat.  ``belief``         ``adaptation.belief_features.BeliefFeature``: the robot's estimate
-                              and its uncertainty (bound to the robot's estimator by the loop)
-plant      ``conveyor``       ``plants.conveyor.ConveyorPickPlace`` (``ConveyorConfig`` options)
-plant      ``toy``            ``plants.toy.ToyConveyor`` (``ToyConveyorConfig`` options)
-allocator  ``greedy``         ``wifi.allocators.GreedyEdfAllocator`` (the paper's, sec. 5)
-allocator  ``greedy-admit``   ``wifi.allocators.AdmissionGreedyAllocator`` (improved greedy)
-allocator  ``convex``         ``wifi.convex.ConvexAllocator`` (OSQP hot path)
-allocator  ``convex-cvxpy``   the same allocator solved through its cvxpy model
-allocator  ``tick-optimal``   ``wifi.tick_optimal.TickOptimalAllocator`` (exact per tick)
-========== ================== ==========================================================
+Each package registers its own kinds in one module of its own (``control/kinds.py``,
+``estimation/kinds.py``, ``adaptation/kinds.py``, ``rollout/kinds.py``, ``plants/kinds.py``,
+``wifi/kinds.py``) with :func:`register`. That module is an entry point of the group
+``codesign_mb.kinds`` (``pyproject.toml``), named by the role it serves, and is imported the
+first time the role is asked for: this module names no module above it, another package adds
+kinds of its own the same way (a plugin), and each kinds module imports its targets for type
+checking, where import-linter sees them. A kind names its factory by import path
+(``"package.module:attribute"``): nothing is imported before it is built, its signature is the
+schema of its options, and a spec becomes a picklable :class:`Factory` that a worker process
+calls on its own plant.
+
+Roles: ``controller``, ``estimator``, ``qos``, ``qos_feature``, ``plant``, ``perception`` (the
+conveyor's edge perception error models), ``linear_plant`` (the named plants of the linear
+study) and ``allocator``; each kinds module lists its kinds and what they are.
 
 Checkpoint paths are looked up relative to the working directory first, then to the
 package's ``models`` folder (so ``checkpoints/stage_a/model.zip`` finds the shipped one).
@@ -50,6 +26,7 @@ package's ``models`` folder (so ``checkpoints/stage_a/model.zip`` finds the ship
 from __future__ import annotations
 
 import importlib
+import importlib.metadata
 import importlib.resources
 import inspect
 import typing
@@ -61,7 +38,7 @@ from typing import Any
 from codesign_mb.core.config import ConfigError, coerce_value, from_mapping
 
 __all__ = [
-    "KINDS",
+    "ENTRY_POINT_GROUP",
     "ComponentSpec",
     "Factory",
     "Kind",
@@ -70,12 +47,15 @@ __all__ = [
     "check_options",
     "create",
     "factory",
+    "kind",
     "kinds",
     "make_plant",
     "models_dir",
     "plant_factory",
+    "register",
     "resolve",
     "resolve_checkpoint",
+    "roles",
 ]
 
 
@@ -131,85 +111,62 @@ class Kind:
     config: str = ""  # plants: the config dataclass ("module:Class") their options are
 
 
-KINDS: dict[str, dict[str, Kind]] = {
-    "controller": {
-        "sac": Kind("codesign_mb.control.sac:SacController.load", checkpoint_keyword="path"),
-        "bc": Kind("codesign_mb.control.sac:SacController.load", checkpoint_keyword="path"),
-        "mpc": Kind("codesign_mb.control.mpc:MpcController.from_env", takes_env=True),
-        "scripted": Kind(
-            "codesign_mb.control.scripted:ScriptedPickController.from_env", takes_env=True
-        ),
-        "toy_pick": Kind("codesign_mb.control.scripted:ToyPickController.from_env", takes_env=True),
-    },
-    "estimator": {
-        "none": Kind("codesign_mb.estimation.base:PassThroughEstimator.from_env", takes_env=True),
-        "mlp": Kind("codesign_mb.estimation.learned:load_estimator", checkpoint_keyword="path"),
-        "lstm": Kind("codesign_mb.estimation.learned:load_estimator", checkpoint_keyword="path"),
-        "sequence": Kind(
-            "codesign_mb.estimation.learned:load_estimator", checkpoint_keyword="path"
-        ),
-        "predictor": Kind(
-            "codesign_mb.estimation.predictor:DelayCompensatingPredictor.from_env", takes_env=True
-        ),
-        "belt_imm": Kind(
-            "codesign_mb.estimation.belt_imm:BeltImmPredictor.from_env", takes_env=True
-        ),
-    },
-    "qos": {
-        "static": Kind("codesign_mb.adaptation.base:StaticQos"),
-        "random": Kind("codesign_mb.adaptation.base:RandomQos"),
-        "rule": Kind("codesign_mb.rollout.compose:covariance_rule", takes_env=True),
-        "planner": Kind("codesign_mb.rollout.compose:qos_planner", takes_env=True),
-        "age_rule": Kind("codesign_mb.adaptation.rules:AgeTriggeredQos"),
-        "learned": Kind(
-            "codesign_mb.adaptation.learned:LearnedQosPolicy.from_env",
-            takes_env=True,
-            checkpoint_keyword="directory",
-        ),
-    },
-    "qos_feature": {
-        "elapsed_time": Kind("codesign_mb.adaptation.learned:ElapsedTimeFeature.from_env"),
-        "held_history": Kind(
-            "codesign_mb.adaptation.model_free_features:HeldHistoryFeature.from_env"
-        ),
-        "predictor_std": Kind("codesign_mb.rollout.compose:predictor_std_feature"),
-        "belief": Kind("codesign_mb.adaptation.belief_features:BeliefFeature.from_env"),
-    },
-    "plant": {
-        "conveyor": Kind(
-            "codesign_mb.plants.conveyor:ConveyorPickPlace.from_options",
-            config="codesign_mb.plants.conveyor_config:ConveyorConfig",
-        ),
-        "toy": Kind(
-            "codesign_mb.plants.toy:ToyConveyor.from_options",
-            config="codesign_mb.plants.toy:ToyConveyorConfig",
-        ),
-    },
-    "allocator": {
-        "greedy": Kind("codesign_mb.wifi.config:greedy_allocator"),
-        "convex": Kind("codesign_mb.wifi.config:convex_allocator"),
-        "convex-cvxpy": Kind("codesign_mb.wifi.config:convex_cvxpy_allocator"),
-        "greedy-admit": Kind("codesign_mb.wifi.allocators:admission_greedy_allocator"),
-        "tick-optimal": Kind("codesign_mb.wifi.tick_optimal:tick_optimal_allocator"),
-    },
-}
-"""role -> kind -> :class:`Kind`. Add a component by adding a row."""
+ENTRY_POINT_GROUP = "codesign_mb.kinds"
+"""The entry-point group of the kinds modules: an entry point's name is its role (``qos``, or
+``qos.rollout`` for a second module of the role), its value the module that registers them."""
+
+_REGISTERED: dict[str, dict[str, Kind]] = {}
+_LOADED: set[str] = set()
+
+
+def register(role: str, name: str, kind: Kind) -> None:
+    """Register ``kind`` as ``name`` in ``role`` (called by the package that owns it)."""
+    if not (isinstance(role, str) and role and isinstance(name, str) and name):
+        raise ValueError(f"role and kind name must be non-empty strings, got {role!r}, {name!r}")
+    if not isinstance(kind, Kind):
+        raise TypeError(f"kind must be a Kind, got {type(kind).__name__}")
+    table = _REGISTERED.setdefault(role, {})
+    if table.get(name, kind) != kind:
+        raise ValueError(f"{role} kind {name!r} is registered twice with different factories")
+    table[name] = kind
+
+
+def _entry_points() -> dict[str, list[str]]:
+    """Role -> the kinds modules its entry points name."""
+    modules: dict[str, list[str]] = {}
+    for entry in importlib.metadata.entry_points(group=ENTRY_POINT_GROUP):
+        modules.setdefault(entry.name.partition(".")[0], []).append(entry.value)
+    return modules
+
+
+def roles() -> tuple[str, ...]:
+    """Every role with kinds: those of the entry points, and any registered directly."""
+    return tuple(dict.fromkeys([*_entry_points(), *_REGISTERED]))
+
+
+def _table(role: str) -> dict[str, Kind]:
+    """The kinds of ``role``; its kinds modules are imported the first time it is asked for."""
+    if role not in _LOADED:
+        for module in _entry_points().get(role, []):
+            importlib.import_module(module)
+        _LOADED.add(role)
+    table = _REGISTERED.get(role, {})
+    if not table:
+        raise ValueError(f"role must be one of {', '.join(roles())}, got {role!r}")
+    return table
 
 
 def kinds(role: str) -> tuple[str, ...]:
     """The kind names of ``role`` (``ValueError`` naming the roles for an unknown one)."""
-    if role not in KINDS:
-        raise ValueError(f"role must be one of {', '.join(KINDS)}, got {role!r}")
-    return tuple(KINDS[role])
+    return tuple(_table(role))
 
 
-def _kind(role: str, kind: str) -> Kind:
-    table = KINDS.get(role, {})
-    if not table:
-        kinds(role)  # raises, naming the roles
-    if kind not in table:
-        raise ValueError(f"unknown {role} kind {kind!r}; expected one of {', '.join(table)}")
-    return table[kind]
+def kind(role: str, name: str) -> Kind:
+    """The :class:`Kind` registered as ``name`` in ``role`` (``ValueError`` naming the kinds)."""
+    table = _table(role)
+    if name not in table:
+        raise ValueError(f"unknown {role} kind {name!r}; expected one of {', '.join(table)}")
+    return table[name]
 
 
 @dataclass(frozen=True)
@@ -269,22 +226,22 @@ def resolve_checkpoint(path: str | Path) -> Path:
 
 def factory(role: str, spec: ComponentSpec) -> Factory:
     """The picklable :class:`Factory` of ``spec`` in ``role``."""
-    kind = _kind(role, spec.kind)
+    found = kind(role, spec.kind)
     kwargs = dict(spec.options)
-    if kind.checkpoint_keyword:
+    if found.checkpoint_keyword:
         if not spec.checkpoint:
             raise ValueError(f"{role} kind {spec.kind!r} needs a checkpoint")
-        kwargs[kind.checkpoint_keyword] = str(resolve_checkpoint(spec.checkpoint))
+        kwargs[found.checkpoint_keyword] = str(resolve_checkpoint(spec.checkpoint))
     elif spec.checkpoint:
         raise ValueError(f"{role} kind {spec.kind!r} takes no checkpoint, got {spec.checkpoint!r}")
     check_options(
         f"{role} kind {spec.kind!r}",
-        kind.target,
+        found.target,
         spec.options,
-        takes_env=kind.takes_env,
-        reserved=kind.checkpoint_keyword,
+        takes_env=found.takes_env,
+        reserved=found.checkpoint_keyword,
     )
-    return Factory(kind.target, kwargs, takes_env=kind.takes_env)
+    return Factory(found.target, kwargs, takes_env=found.takes_env)
 
 
 def check_options(
@@ -338,9 +295,9 @@ def build(role: str, spec: ComponentSpec, env: Any) -> Any:
     return factory(role, spec)(env.unwrapped if hasattr(env, "unwrapped") else env)
 
 
-def create(role: str, kind: str, *args: Any, **kwargs: Any) -> Any:
+def create(role: str, name: str, *args: Any, **kwargs: Any) -> Any:
     """Call the factory of ``kind`` with positional arguments (plants, allocators)."""
-    return resolve(_kind(role, kind).target)(*args, **kwargs)
+    return resolve(kind(role, name).target)(*args, **kwargs)
 
 
 @dataclass(frozen=True)
@@ -360,14 +317,14 @@ class PlantSpec:
     options: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
-        if self.name not in KINDS["plant"]:
+        if self.name not in kinds("plant"):
             raise ValueError(
-                f"plant.name must be one of {sorted(KINDS['plant'])}, got {self.name!r}"
+                f"plant.name must be one of {sorted(kinds('plant'))}, got {self.name!r}"
             )
         if not isinstance(self.options, Mapping):
             raise ValueError(f"plant.options must be a table, got {self.options!r}")
         # The options are the plant config's fields: checked now, where they are read.
-        from_mapping(resolve(KINDS["plant"][self.name].config), self.options, where="plant.options")
+        from_mapping(resolve(kind("plant", self.name).config), self.options, where="plant.options")
 
 
 def make_plant(spec: PlantSpec) -> Any:
@@ -377,6 +334,5 @@ def make_plant(spec: PlantSpec) -> Any:
 
 def plant_factory(spec: PlantSpec) -> Factory:
     """A picklable zero-argument factory of ``spec``'s env (what ``evaluate`` takes)."""
-    return Factory(
-        KINDS["plant"][spec.name].target, {"options": dict(spec.options)}, takes_env=False
-    )
+    target = kind("plant", spec.name).target
+    return Factory(target, {"options": dict(spec.options)}, takes_env=False)

@@ -348,9 +348,6 @@ class LstmEstimator(LearnedEstimator):
         return {"hidden": self.net.hidden_size, "layers": self.net.num_layers}
 
 
-_KINDS: dict[str, type[LearnedEstimator]] = {"mlp": MlpEstimator, "lstm": LstmEstimator}
-
-
 def load_estimator(path: str | Path) -> LearnedEstimator:
     """Load an estimator written by :meth:`LearnedEstimator.save` (MLP, LSTM or sequence)."""
     path = Path(path)
@@ -365,12 +362,12 @@ def load_estimator(path: str | Path) -> LearnedEstimator:
             from codesign_mb.estimation.sequence import GaussianSequenceEstimator
 
             return GaussianSequenceEstimator.from_blob(blob)
-        if kind not in _KINDS:
+        if kind not in ("mlp", "lstm"):
             raise ValueError(f"it holds an unknown estimator kind {kind!r}")
         features = EstimatorFeatures(**blob["features"])
-        cls = _KINDS[kind]
+        cls: type[LearnedEstimator] = MlpEstimator if kind == "mlp" else LstmEstimator
         net_cfg = blob["net"]
-        if cls is MlpEstimator:
+        if kind == "mlp":
             net: nn.Module = MlpEstimatorNet(
                 features.in_dim, features.out_dim, tuple(net_cfg["hidden"])
             )

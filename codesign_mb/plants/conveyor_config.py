@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 
 from codesign_mb.core.config import STEPS_CAP, Cap, check_range
-from codesign_mb.plants.perception import PERCEPTION_MODELS
+from codesign_mb.core.registry import kinds
 from codesign_mb.robot.scene import BELT_HALF_WIDTH, OBJECTS
 
 __all__ = ["BELT_PROFILES", "ConveyorConfig", "observation_layout"]
@@ -85,9 +85,8 @@ class ConveyorConfig:
         Probability per step of a missed detection: the edge has no fresh measurement and
         sends nothing (:mod:`codesign_mb.plants.perception`).
     perception_model:
-        The edge's perception error model, a key of
-        :data:`codesign_mb.plants.perception.PERCEPTION_MODELS` (``"gaussian"``: the noise,
-        bias and miss rate above).
+        The edge's perception error model, a ``perception`` kind (:mod:`codesign_mb.plants.kinds`;
+        ``"gaussian"``: the noise, bias and miss rate above).
     perceive_velocity:
         Whether the perceived object state includes its velocity.
     lift_height_m, success_distance_m, success_hold_steps:
@@ -300,8 +299,8 @@ def _validate_scenario_options(config: ConveyorConfig, number: Any) -> None:
     ):
         raise ValueError(f"perception_bias_m must be 3 finite numbers, got {bias!r}")
     object.__setattr__(config, "perception_bias_m", tuple(float(v) for v in bias))
-    if config.perception_model not in PERCEPTION_MODELS:
+    if config.perception_model not in kinds("perception"):
         raise ValueError(
-            f"perception_model must be one of {', '.join(PERCEPTION_MODELS)}, "
+            f"perception_model must be one of {', '.join(kinds('perception'))}, "
             f"got {config.perception_model!r}"
         )

@@ -29,7 +29,6 @@ Examples
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
 from dataclasses import dataclass
 from functools import cached_property
 from typing import Any
@@ -41,10 +40,10 @@ import scipy.linalg
 from numpy.typing import ArrayLike, NDArray
 
 from codesign_mb.core.config import as_matrix
+from codesign_mb.core.registry import create, kinds
 
 __all__ = [
     "CONTROL_PERIOD_S",
-    "LINEAR_PLANTS",
     "LinearPlantEnv",
     "LinearPlantSpec",
     "double_integrator",
@@ -352,27 +351,18 @@ def inverted_pendulum(
     return LinearPlantSpec.from_system(system, W, V, name="inverted_pendulum")
 
 
-LINEAR_PLANTS: dict[str, Callable[[], LinearPlantSpec]] = {
-    "scalar": scalar_unstable,
-    "double_integrator": double_integrator,
-    "pendulum": inverted_pendulum,
-}
-"""The named plants with their default parameters."""
-
-
 def make_linear_plant(name: str) -> LinearPlantSpec:
-    """The plant registered as ``name`` in :data:`LINEAR_PLANTS`, with default parameters."""
-    try:
-        factory = LINEAR_PLANTS[name]
-    except KeyError:
+    """The plant registered as ``name`` (role ``linear_plant``), with default parameters."""
+    if name not in kinds("linear_plant"):
         raise ValueError(
-            f"plant must be one of {', '.join(sorted(LINEAR_PLANTS))}, got {name!r}"
-        ) from None
-    return factory()
+            f"plant must be one of {', '.join(sorted(kinds('linear_plant')))}, got {name!r}"
+        )
+    spec: LinearPlantSpec = create("linear_plant", name)
+    return spec
 
 
 def make_linear_env(plant: str = "pendulum", **options: Any) -> LinearPlantEnv:
-    """The linear plant ``plant`` of :data:`LINEAR_PLANTS` as an env (Gymnasium entry point).
+    """The linear plant ``plant`` (a ``linear_plant`` kind) as an env (Gymnasium entry point).
 
     ``options`` are :class:`LinearPlantEnv`'s keyword arguments (``horizon``, ``x0_cov``, ...).
     """

@@ -13,28 +13,29 @@ after a lost packet. The estimators need nothing new for that: a Kalman predicto
 open loop, a learned one sees a larger age. The env's own observation keeps the last perceived
 position in its remote slice (the edge's last output), never a made-up value.
 
-Models are looked up by name in :data:`PERCEPTION_MODELS` (the config's
+Models are looked up by name in the registry's ``perception`` role (the config's
 ``perception_model``); :class:`GaussianPerception` (``"gaussian"``) is the default. A model
-calibrated from rendered camera frames plugs in by adding its factory there.
+calibrated from rendered camera frames plugs in by registering its factory there
+(:mod:`codesign_mb.plants.kinds`).
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
-from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
+from typing import TYPE_CHECKING, Protocol, runtime_checkable
 
 import numpy as np
 from numpy.typing import NDArray
 
+from codesign_mb.core.registry import create
 from codesign_mb.plants.camera_perception import CameraPerception
 
 if TYPE_CHECKING:
     from codesign_mb.plants.conveyor_config import ConveyorConfig
 
 __all__ = [
-    "PERCEPTION_MODELS",
     "GaussianPerception",
     "PerceptionErrorModel",
+    "camera_perception",
     "make_perception",
     "reset_perception",
 ]
@@ -143,21 +144,12 @@ class GaussianPerception:
         return measured
 
 
-def _camera(config: ConveyorConfig) -> PerceptionErrorModel:
-    """The error model calibrated from the edge camera's rendered frames."""
+def camera_perception(config: ConveyorConfig) -> PerceptionErrorModel:
+    """The error model calibrated from the edge camera's rendered frames (perception kind
+    ``camera``, :mod:`codesign_mb.plants.kinds`)."""
     return CameraPerception.load(config.object)
-
-
-PERCEPTION_MODELS: dict[str, Callable[[Any], PerceptionErrorModel]] = {
-    "gaussian": GaussianPerception.from_config,
-    "camera": _camera,
-}
-"""Perception model name (``ConveyorConfig.perception_model``) -> factory of the config.
-
-``"camera"`` is :class:`~codesign_mb.plants.camera_perception.CameraPerception`, calibrated from
-the edge camera's rendered frames (``codesign calibrate-perception``)."""
 
 
 def make_perception(config: ConveyorConfig) -> PerceptionErrorModel:
     """The perception error model a conveyor config names."""
-    return PERCEPTION_MODELS[config.perception_model](config)
+    return create("perception", config.perception_model, config)
