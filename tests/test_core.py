@@ -102,7 +102,7 @@ def test_kinds_are_registered_at_the_edges_where_import_linter_sees_them() -> No
     above = {m for m in graph.modules if not m.startswith("codesign_mb.core")} - {"codesign_mb"}
     assert not any(graph.direct_import_exists(importer=c, imported=a) for c in core for a in above)
     with pytest.raises(ValueError, match="registered twice"):
-        registry.register("qos", "static", registry.Kind("codesign_mb.adaptation.base:RandomQos"))
+        registry.register("qos", {"static": registry.Kind("codesign_mb.adaptation.base:RandomQos")})
 
 
 def _square(x: int) -> int:

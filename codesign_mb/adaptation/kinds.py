@@ -32,30 +32,27 @@ if TYPE_CHECKING:  # the targets, for import-linter and the type checker; import
         rules,
     )
 
-register("qos", "static", Kind("codesign_mb.adaptation.base:StaticQos"))
-register("qos", "random", Kind("codesign_mb.adaptation.base:RandomQos"))
-register("qos", "age_rule", Kind("codesign_mb.adaptation.rules:AgeTriggeredQos"))
 register(
     "qos",
-    "learned",
-    Kind(
-        "codesign_mb.adaptation.learned:LearnedQosPolicy.from_env",
-        takes_env=True,
-        checkpoint_keyword="directory",
-    ),
+    {
+        "static": Kind("codesign_mb.adaptation.base:StaticQos"),
+        "random": Kind("codesign_mb.adaptation.base:RandomQos"),
+        "age_rule": Kind("codesign_mb.adaptation.rules:AgeTriggeredQos"),
+        "learned": Kind(
+            "codesign_mb.adaptation.learned:LearnedQosPolicy.from_env",
+            takes_env=True,
+            checkpoint_keyword="directory",
+        ),
+    },
 )
+
 register(
     "qos_feature",
-    "elapsed_time",
-    Kind("codesign_mb.adaptation.learned:ElapsedTimeFeature.from_env"),
-)
-register(
-    "qos_feature",
-    "held_history",
-    Kind("codesign_mb.adaptation.model_free_features:HeldHistoryFeature.from_env"),
-)
-register(
-    "qos_feature",
-    "belief",
-    Kind("codesign_mb.adaptation.belief_features:BeliefFeature.from_env"),
+    {
+        "elapsed_time": Kind("codesign_mb.adaptation.learned:ElapsedTimeFeature.from_env"),
+        "held_history": Kind(
+            "codesign_mb.adaptation.model_free_features:HeldHistoryFeature.from_env"
+        ),
+        "belief": Kind("codesign_mb.adaptation.belief_features:BeliefFeature.from_env"),
+    },
 )

@@ -22,24 +22,13 @@ if TYPE_CHECKING:  # the targets, for import-linter and the type checker; import
 
 register(
     "controller",
-    "sac",
-    Kind("codesign_mb.control.sac:SacController.load", checkpoint_keyword="path"),
-)
-register(
-    "controller",
-    "bc",
-    Kind("codesign_mb.control.sac:SacController.load", checkpoint_keyword="path"),
-)
-register(
-    "controller", "mpc", Kind("codesign_mb.control.mpc:MpcController.from_env", takes_env=True)
-)
-register(
-    "controller",
-    "scripted",
-    Kind("codesign_mb.control.scripted:ScriptedPickController.from_env", takes_env=True),
-)
-register(
-    "controller",
-    "toy_pick",
-    Kind("codesign_mb.control.scripted:ToyPickController.from_env", takes_env=True),
+    {
+        "sac": Kind("codesign_mb.control.sac:SacController.load", checkpoint_keyword="path"),
+        "bc": Kind("codesign_mb.control.sac:SacController.load", checkpoint_keyword="path"),
+        "mpc": Kind("codesign_mb.control.mpc:MpcController.from_env", takes_env=True),
+        "scripted": Kind(
+            "codesign_mb.control.scripted:ScriptedPickController.from_env", takes_env=True
+        ),
+        "toy_pick": Kind("codesign_mb.control.scripted:ToyPickController.from_env", takes_env=True),
+    },
 )

@@ -119,16 +119,20 @@ _REGISTERED: dict[str, dict[str, Kind]] = {}
 _LOADED: set[str] = set()
 
 
-def register(role: str, name: str, kind: Kind) -> None:
-    """Register ``kind`` as ``name`` in ``role`` (called by the package that owns it)."""
-    if not (isinstance(role, str) and role and isinstance(name, str) and name):
-        raise ValueError(f"role and kind name must be non-empty strings, got {role!r}, {name!r}")
-    if not isinstance(kind, Kind):
-        raise TypeError(f"kind must be a Kind, got {type(kind).__name__}")
-    table = _REGISTERED.setdefault(role, {})
-    if table.get(name, kind) != kind:
-        raise ValueError(f"{role} kind {name!r} is registered twice with different factories")
-    table[name] = kind
+def register(role: str, table: Mapping[str, Kind]) -> None:
+    """Register the kinds of ``table`` (name -> :class:`Kind`) in ``role``: called by the
+    package that owns them, in its kinds module."""
+    if not (isinstance(role, str) and role):
+        raise ValueError(f"role must be a non-empty string, got {role!r}")
+    registered = _REGISTERED.setdefault(role, {})
+    for name, kind in table.items():
+        if not (isinstance(name, str) and name):
+            raise ValueError(f"a {role} kind name must be a non-empty string, got {name!r}")
+        if not isinstance(kind, Kind):
+            raise TypeError(f"{role} kind {name!r} must be a Kind, got {type(kind).__name__}")
+        if registered.get(name, kind) != kind:
+            raise ValueError(f"{role} kind {name!r} is registered twice with different factories")
+        registered[name] = kind
 
 
 def _entry_points() -> dict[str, list[str]]:

@@ -20,21 +20,21 @@ from codesign_mb.core.registry import Kind, register
 if TYPE_CHECKING:  # the targets, for import-linter and the type checker; imported when built
     from codesign_mb.estimation import base, belt_imm, learned, predictor  # noqa: F401
 
-_LEARNED = Kind("codesign_mb.estimation.learned:load_estimator", checkpoint_keyword="path")
 register(
     "estimator",
-    "none",
-    Kind("codesign_mb.estimation.base:PassThroughEstimator.from_env", takes_env=True),
-)
-for _name in ("mlp", "lstm", "sequence"):  # the checkpoint records which network it holds
-    register("estimator", _name, _LEARNED)
-register(
-    "estimator",
-    "predictor",
-    Kind("codesign_mb.estimation.predictor:DelayCompensatingPredictor.from_env", takes_env=True),
-)
-register(
-    "estimator",
-    "belt_imm",
-    Kind("codesign_mb.estimation.belt_imm:BeltImmPredictor.from_env", takes_env=True),
+    {
+        "none": Kind("codesign_mb.estimation.base:PassThroughEstimator.from_env", takes_env=True),
+        # The learned ones: load_estimator builds the network their checkpoint records.
+        "mlp": Kind("codesign_mb.estimation.learned:load_estimator", checkpoint_keyword="path"),
+        "lstm": Kind("codesign_mb.estimation.learned:load_estimator", checkpoint_keyword="path"),
+        "sequence": Kind(
+            "codesign_mb.estimation.learned:load_estimator", checkpoint_keyword="path"
+        ),
+        "predictor": Kind(
+            "codesign_mb.estimation.predictor:DelayCompensatingPredictor.from_env", takes_env=True
+        ),
+        "belt_imm": Kind(
+            "codesign_mb.estimation.belt_imm:BeltImmPredictor.from_env", takes_env=True
+        ),
+    },
 )

@@ -32,24 +32,31 @@ if TYPE_CHECKING:  # the targets, for import-linter and the type checker; import
 
 register(
     "plant",
-    "conveyor",
-    Kind(
-        "codesign_mb.plants.conveyor:ConveyorPickPlace.from_options",
-        config="codesign_mb.plants.conveyor_config:ConveyorConfig",
-    ),
+    {
+        "conveyor": Kind(
+            "codesign_mb.plants.conveyor:ConveyorPickPlace.from_options",
+            config="codesign_mb.plants.conveyor_config:ConveyorConfig",
+        ),
+        "toy": Kind(
+            "codesign_mb.plants.toy:ToyConveyor.from_options",
+            config="codesign_mb.plants.toy:ToyConveyorConfig",
+        ),
+    },
 )
+
 register(
-    "plant",
-    "toy",
-    Kind(
-        "codesign_mb.plants.toy:ToyConveyor.from_options",
-        config="codesign_mb.plants.toy:ToyConveyorConfig",
-    ),
+    "perception",
+    {
+        "gaussian": Kind("codesign_mb.plants.perception:GaussianPerception.from_config"),
+        "camera": Kind("codesign_mb.plants.perception:camera_perception"),
+    },
 )
+
 register(
-    "perception", "gaussian", Kind("codesign_mb.plants.perception:GaussianPerception.from_config")
+    "linear_plant",
+    {
+        "scalar": Kind("codesign_mb.plants.linear:scalar_unstable"),
+        "double_integrator": Kind("codesign_mb.plants.linear:double_integrator"),
+        "pendulum": Kind("codesign_mb.plants.linear:inverted_pendulum"),
+    },
 )
-register("perception", "camera", Kind("codesign_mb.plants.perception:camera_perception"))
-register("linear_plant", "scalar", Kind("codesign_mb.plants.linear:scalar_unstable"))
-register("linear_plant", "double_integrator", Kind("codesign_mb.plants.linear:double_integrator"))
-register("linear_plant", "pendulum", Kind("codesign_mb.plants.linear:inverted_pendulum"))

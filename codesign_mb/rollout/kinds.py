@@ -20,6 +20,17 @@ from codesign_mb.core.registry import Kind, register
 if TYPE_CHECKING:  # the targets, for import-linter and the type checker; imported when built
     from codesign_mb.rollout import compose  # noqa: F401
 
-register("qos", "rule", Kind("codesign_mb.rollout.compose:covariance_rule", takes_env=True))
-register("qos", "planner", Kind("codesign_mb.rollout.compose:qos_planner", takes_env=True))
-register("qos_feature", "predictor_std", Kind("codesign_mb.rollout.compose:predictor_std_feature"))
+register(
+    "qos",
+    {
+        "rule": Kind("codesign_mb.rollout.compose:covariance_rule", takes_env=True),
+        "planner": Kind("codesign_mb.rollout.compose:qos_planner", takes_env=True),
+    },
+)
+
+register(
+    "qos_feature",
+    {
+        "predictor_std": Kind("codesign_mb.rollout.compose:predictor_std_feature"),
+    },
+)

@@ -20,12 +20,13 @@ from codesign_mb.core.registry import Kind, register
 if TYPE_CHECKING:  # the targets, for import-linter and the type checker; imported when built
     from codesign_mb.wifi import allocators, config, tick_optimal  # noqa: F401
 
-register("allocator", "greedy", Kind("codesign_mb.wifi.config:greedy_allocator"))
-register("allocator", "convex", Kind("codesign_mb.wifi.config:convex_allocator"))
-register("allocator", "convex-cvxpy", Kind("codesign_mb.wifi.config:convex_cvxpy_allocator"))
 register(
     "allocator",
-    "greedy-admit",
-    Kind("codesign_mb.wifi.allocators:admission_greedy_allocator"),
+    {
+        "greedy": Kind("codesign_mb.wifi.config:greedy_allocator"),
+        "convex": Kind("codesign_mb.wifi.config:convex_allocator"),
+        "convex-cvxpy": Kind("codesign_mb.wifi.config:convex_cvxpy_allocator"),
+        "greedy-admit": Kind("codesign_mb.wifi.allocators:admission_greedy_allocator"),
+        "tick-optimal": Kind("codesign_mb.wifi.tick_optimal:tick_optimal_allocator"),
+    },
 )
-register("allocator", "tick-optimal", Kind("codesign_mb.wifi.tick_optimal:tick_optimal_allocator"))
