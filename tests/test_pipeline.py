@@ -40,6 +40,7 @@ from codesign_mb.stages.episodes import (
 from codesign_mb.stages.fitting import EstimatorTraining, fit_estimator, new_estimator
 from codesign_mb.stages.paths import recorded_components, resolve_recorded
 from codesign_mb.stages.qos_env import QosAdaptationEnv, QosEnvConfig
+from codesign_mb.stages.stage import StageRun
 from codesign_mb.stages.stage_a import StageAConfig, train_stage_a
 from codesign_mb.stages.stage_b import StageBConfig, train_stage_b
 from codesign_mb.stages.stage_c import StageCConfig, train_stage_c
@@ -90,9 +91,7 @@ def pipeline(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
             curriculum=(),
             final_eval_episodes=1,
         ),
-        out_dir=out["a"],
-        work_dir=work["a"],
-        command="test a",
+        StageRun(out["a"], work["a"], command="test a"),
     )
     sac = ComponentSpec("sac", str(out["a"] / "model.zip"))
     train_stage_b(
@@ -108,8 +107,7 @@ def pipeline(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
             mlp=EstimatorTraining(epochs=2),
             lstm=EstimatorTraining(epochs=2),
         ),
-        out_dir=out["b"],
-        work_dir=work["b"],
+        StageRun(out["b"], work["b"]),
     )
     stage_c = StageCConfig(
         plant=TOY,
@@ -121,7 +119,7 @@ def pipeline(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
         eval_episodes=1,
         dual=DualAscent(every_episodes=1),
     )
-    train_stage_c(stage_c, out_dir=out["c"], work_dir=work["c"])
+    train_stage_c(stage_c, StageRun(out["c"], work["c"]))
     train_stage_d(
         StageDConfig(
             plant=TOY,
@@ -134,8 +132,7 @@ def pipeline(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
             estimator_training=EstimatorTraining(epochs=2),
             qos=StageCConfig(total_steps=100, chunk_steps=100, eval_episodes=1, sac=TINY_SAC),
         ),
-        out_dir=out["d"],
-        work_dir=work["d"],
+        StageRun(out["d"], work["d"]),
     )
     return {**{f"out_{k}": v for k, v in out.items()}, **{f"work_{k}": v for k, v in work.items()}}
 
@@ -172,7 +169,7 @@ def test_stage_a_resume_continues_the_step_count(pipeline: dict[str, Path], tmp_
         curriculum=(),
         final_eval_episodes=1,
     )
-    result = train_stage_a(config, out_dir=tmp_path / "out", work_dir=work, resume=True)
+    result = train_stage_a(config, StageRun(tmp_path / "out", work, resume=True))
     assert result["env_steps"] == 300
     state = json.loads((work / "state.json").read_text())
     assert [p["steps"] for p in state["curve"]] == [0, 100, 200, 300]
@@ -341,7 +338,7 @@ def test_stage_c_resume_continues(pipeline: dict[str, Path], tmp_path) -> None:
         chunk_steps=100,
         eval_episodes=0,
     )
-    result = train_stage_c(config, out_dir=tmp_path / "out", work_dir=work, resume=True)
+    result = train_stage_c(config, StageRun(tmp_path / "out", work, resume=True))
     assert result["env_steps"] == 300
     state = json.loads((work / "state.json").read_text())
     assert [p["steps"] for p in state["curve"]] == [100, 200, 300]
@@ -360,7 +357,7 @@ def test_stage_c_with_features_round_trips(tmp_path) -> None:
         eval_episodes=1,
         dual=DualAscent(enabled=False),
     )
-    train_stage_c(config, out_dir=tmp_path / "out", work_dir=tmp_path / "work")
+    train_stage_c(config, StageRun(tmp_path / "out", tmp_path / "work"))
     policy = LearnedQosPolicy.from_env(make_plant(TOY), tmp_path / "out")
     assert isinstance(policy.features, ElapsedTimeFeature)
     meta = json.loads((tmp_path / "out" / "training.json").read_text())
@@ -514,7 +511,7 @@ def test_stage_d_rejects_features_the_stage_c_policy_lacks(
         qos=StageCConfig(features="predictor_std"),
     )
     with pytest.raises(ValueError, match="trained with None"):
-        train_stage_d(config, out_dir=tmp_path / "out", work_dir=tmp_path / "work")
+        train_stage_d(config, StageRun(tmp_path / "out", tmp_path / "work"))
 
 
 def test_shipped_stage_c_config_parses() -> None:

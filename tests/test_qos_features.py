@@ -23,6 +23,7 @@ from codesign_mb.network.qos import QosRequest
 from codesign_mb.rollout.compose import covariance_rule_on, predictor_replica_on
 from codesign_mb.stages.dual_ascent import DualAscent
 from codesign_mb.stages.qos_env import QosEnvConfig
+from codesign_mb.stages.stage import StageRun
 from codesign_mb.stages.stage_c import StageCConfig, make_qos_env, train_stage_c
 from codesign_mb.stages.training import SacSpec
 
@@ -153,7 +154,7 @@ def test_stage_c_with_predictor_std_round_trips(tmp_path) -> None:
         eval_episodes=1,
         dual=DualAscent(enabled=False),
     )
-    train_stage_c(config, out_dir=tmp_path / "out", work_dir=tmp_path / "work")
+    train_stage_c(config, StageRun(tmp_path / "out", tmp_path / "work"))
     meta = json.loads((tmp_path / "out" / "qos_policy.json").read_text())
     assert meta["features"] == {"kind": "predictor_std", "options": {"scale_m": 0.02}}
     policy = LearnedQosPolicy.from_env(make_plant(TOY), tmp_path / "out")

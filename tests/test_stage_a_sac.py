@@ -20,6 +20,7 @@ from codesign_mb.stages.sac_from_demos import (
     DemoMixedReplayBuffer,
     make_sac_from_demos,
 )
+from codesign_mb.stages.stage import StageRun
 from codesign_mb.stages.stage_a import StageAConfig, train_stage_a
 from codesign_mb.stages.stage_a_aids import EstimatedStateEnv, curriculum_schedule, plant_at_speed
 from codesign_mb.stages.training import SacSpec
@@ -180,7 +181,7 @@ def _tiny_config(**overrides: Any) -> StageAConfig:
 
 def test_tiny_stage_a_ships_a_sac_trained_actor_not_the_clone(tmp_path: Path) -> None:
     config = _tiny_config(bc_decay_steps=100)
-    train_stage_a(config, out_dir=tmp_path / "out", work_dir=tmp_path / "work", command="t")
+    train_stage_a(config, StageRun(tmp_path / "out", tmp_path / "work", command="t"))
     meta = json.loads((tmp_path / "out" / "training.json").read_text())
     assert meta["env_steps"] == 120 and meta["command"] == "t"
     assert meta["demonstrations"]["demo_steps"] == 2 * 40
@@ -202,7 +203,7 @@ def test_tiny_stage_a_ships_a_sac_trained_actor_not_the_clone(tmp_path: Path) ->
 def test_frozen_actor_chunks_are_evaluated_but_never_shipped(tmp_path: Path) -> None:
     """With the actor held still for the first chunk, that chunk is the clone's: not shipped."""
     config = _tiny_config(actor_freeze_steps=60, actor_ramp_steps=30)
-    train_stage_a(config, out_dir=tmp_path / "out", work_dir=tmp_path / "work")
+    train_stage_a(config, StageRun(tmp_path / "out", tmp_path / "work"))
     curve = json.loads((tmp_path / "out" / "curve.json").read_text())
     assert [(p["steps"], p["actor"]) for p in curve] == [
         (0, "bc"),

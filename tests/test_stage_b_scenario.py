@@ -22,6 +22,7 @@ from codesign_mb.plants.phases import NOT_SPAWNED, PHASES
 from codesign_mb.plants.scenarios import scenario_options
 from codesign_mb.stages.episodes import EpisodeData
 from codesign_mb.stages.fitting import EstimatorTraining, fit_estimator
+from codesign_mb.stages.stage import StageRun
 from codesign_mb.stages.stage_b import StageBConfig, train_stage_b
 
 REALISTIC = PlantSpec("conveyor", {**scenario_options("realistic"), "horizon": 40})
@@ -41,7 +42,7 @@ def realistic_run(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
         mlp=EstimatorTraining(epochs=2),
         lstm=EstimatorTraining(epochs=2),
     )
-    train_stage_b(config, out_dir=root / "out", work_dir=root / "work")
+    train_stage_b(config, StageRun(root / "out", root / "work"))
     meta = json.loads((root / "out" / "training.json").read_text())
     return {"root": root, "meta": meta, "val": EpisodeData.load(root / "work" / "val.npz")}
 

@@ -71,21 +71,10 @@ def _overrides(assignments: list[str]) -> dict[str, Any]:
 
 
 def _config_class(stage: str) -> type:
-    if stage == "a":
-        from codesign_mb.stages.stage_a import StageAConfig
+    from codesign_mb.core.registry import kind, resolve
 
-        return StageAConfig
-    if stage == "b":
-        from codesign_mb.stages.stage_b import StageBConfig
-
-        return StageBConfig
-    if stage == "c":
-        from codesign_mb.stages.stage_c import StageCConfig
-
-        return StageCConfig
-    from codesign_mb.stages.stage_d import StageDConfig
-
-    return StageDConfig
+    config_class: type = resolve(kind("stage", stage).config)
+    return config_class
 
 
 def default_out(stage: str, config: Any) -> Path:
@@ -162,28 +151,12 @@ def run_stage(
     import torch
 
     torch.set_num_threads(1)
-    kwargs = {
-        "out_dir": out_dir,
-        "work_dir": work_dir,
-        "resume": resume,
-        "progress": progress,
-        "command": command,
-    }
-    if stage == "a":
-        from codesign_mb.stages.stage_a import train_stage_a
+    from codesign_mb.core.registry import create
+    from codesign_mb.stages.stage import StageRun
 
-        return train_stage_a(config, **kwargs)
-    if stage == "b":
-        from codesign_mb.stages.stage_b import train_stage_b
-
-        return train_stage_b(config, **kwargs)
-    if stage == "c":
-        from codesign_mb.stages.stage_c import train_stage_c
-
-        return train_stage_c(config, **kwargs)
-    from codesign_mb.stages.stage_d import train_stage_d
-
-    return train_stage_d(config, **kwargs)
+    run = StageRun(out_dir, work_dir, resume, progress, command)
+    summary: dict[str, Any] = create("stage", stage, config, run)
+    return summary
 
 
 @cli_errors

@@ -44,7 +44,7 @@ from stable_baselines3 import SAC
 from stable_baselines3.common.buffers import ReplayBuffer
 
 from codesign_mb.control.sac import SacController
-from codesign_mb.core.config import EPISODES_CAP, TRAINING_STEPS_CAP, check_range
+from codesign_mb.core.config import EPISODES_CAP, SEED_CAP, TRAINING_STEPS_CAP, check_range
 from codesign_mb.core.registry import ComponentSpec, PlantSpec, build
 from codesign_mb.stages.demonstrations import add_demonstrations, clone_behaviour, warm_up_critic
 from codesign_mb.stages.sac_from_demos import (
@@ -52,6 +52,7 @@ from codesign_mb.stages.sac_from_demos import (
     BehaviourCloningTerm,
     make_sac_from_demos,
 )
+from codesign_mb.stages.stage import StageRun
 from codesign_mb.stages.stage_a_aids import (
     Curriculum,
     EstimatedStateEnv,
@@ -66,7 +67,6 @@ from codesign_mb.stages.training import (
     SacSpec,
     TrainingState,
     load_state,
-    no_progress,
     require_at_least,
     resume_sac,
     selection_seeds,
@@ -190,6 +190,7 @@ class StageAConfig:
     def __post_init__(self) -> None:
         require_at_least(self, 1, "total_steps", "chunk_steps", cap=TRAINING_STEPS_CAP)
         require_at_least(self, 0, "eval_episodes", "demo_episodes", cap=EPISODES_CAP)
+        check_range("seed", self.seed, ge=0, cap=SEED_CAP)
         check_range("n_critics", self.n_critics, ge=1, le=16)
         require_at_least(
             self,
@@ -236,12 +237,7 @@ _NOTES = (
 
 def train_stage_a(
     config: StageAConfig,
-    *,
-    out_dir: str | Path,
-    work_dir: str | Path,
-    resume: bool = False,
-    progress: Progress = no_progress,
-    command: str | None = None,
+    run: StageRun,
 ) -> dict[str, Any]:
     """Train the ideal SAC controller; write the checkpoint (and the clone) to ``out_dir``.
 
@@ -250,7 +246,8 @@ def train_stage_a(
     best evaluation; evaluate the shipped actor and the clone; write ``out_dir``. Returns the
     summary written to ``out_dir/training.json`` (steps, wall time, evaluation).
     """
-    work_dir = Path(work_dir)
+    out_dir, work_dir = run.out_dir, run.work_dir
+    resume, progress, command = run.resume, run.progress, run.command
     launched = time.perf_counter()
     schedule = curriculum_schedule(config.plant, config.curriculum, config.total_steps)
     env = _shaped(config, EstimatedStateEnv(config.plant, config.estimator))

@@ -50,10 +50,10 @@ from codesign_mb.stages.episodes import (
     velocity_slice,
 )
 from codesign_mb.stages.fitting import EstimatorTraining, fit_estimator, new_estimator
+from codesign_mb.stages.stage import StageRun
 from codesign_mb.stages.training import (
     WIDTH_CAP,
     Progress,
-    no_progress,
     require_at_least,
     training_record,
     write_json,
@@ -195,12 +195,7 @@ class _Collection:
 
 def train_stage_b(
     config: StageBConfig,
-    *,
-    out_dir: str | Path,
-    work_dir: str | Path,
-    resume: bool = False,
-    progress: Progress = no_progress,
-    command: str | None = None,
+    run: StageRun,
 ) -> dict[str, Any]:
     """Collect data, fit the estimators, compare them on held-out data; write ``out_dir``.
 
@@ -208,8 +203,8 @@ def train_stage_b(
     wall time, the held-out MSE table) and ``curve.json`` (loss per epoch). Collected data are
     cached in ``work_dir``; with ``resume`` a finished round or fit is not redone.
     """
-    out_dir, work_dir = Path(out_dir), Path(work_dir)
-    _prepare_work_dir(work_dir, resume)
+    out_dir, work_dir = run.out_dir, run.prepare_work_dir((".npz", ".pt", "curves.json"))
+    resume, progress, command = run.resume, run.progress, run.command
     started = time.perf_counter()
     probe = make_plant(config.plant)
     collect = _Collection(config, work_dir)
@@ -249,15 +244,6 @@ def train_stage_b(
     write_training_record(out_dir, meta, curves)
     probe.close()
     return {"env_steps": meta["env_steps"], "wall_time_s": meta["wall_time_s"], "mse": results}
-
-
-def _prepare_work_dir(work_dir: Path, resume: bool) -> None:
-    """Create ``work_dir``; unless resuming, drop a previous run's data, fits and curves."""
-    work_dir.mkdir(parents=True, exist_ok=True)
-    if not resume:
-        for old in work_dir.glob("*"):
-            if old.suffix in (".npz", ".pt") or old.name == "curves.json":
-                old.unlink()
 
 
 def _train_estimator(

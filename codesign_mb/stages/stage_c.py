@@ -32,13 +32,13 @@ from codesign_mb.core.registry import (
 from codesign_mb.stages.dual_ascent import DualAscent, DualAscentCallback, feasible_score
 from codesign_mb.stages.paths import portable_paths
 from codesign_mb.stages.qos_env import QosAdaptationEnv, QosEnvConfig, evaluate_qos_agent
+from codesign_mb.stages.stage import StageRun
 from codesign_mb.stages.training import (
     Progress,
     SacSpec,
     TrainingState,
     load_state,
     make_sac,
-    no_progress,
     require_at_least,
     resume_sac,
     selection_seeds,
@@ -149,12 +149,8 @@ def make_qos_env(
 
 def train_stage_c(
     config: StageCConfig,
+    run: StageRun,
     *,
-    out_dir: str | Path,
-    work_dir: str | Path,
-    resume: bool = False,
-    progress: Progress = no_progress,
-    command: str | None = None,
     stage: str = "c",
 ) -> dict[str, Any]:
     """Learn the QoS policy with SAC (+ dual ascent); write it to ``out_dir``.
@@ -167,7 +163,8 @@ def train_stage_c(
     the multiplier and the training episodes' statistics; plus the dual ascent history in
     ``training.json``).
     """
-    work_dir = Path(work_dir)
+    out_dir, work_dir = run.out_dir, run.work_dir
+    resume, progress, command = run.resume, run.progress, run.command
     env = make_qos_env(config)
     eval_env = make_qos_env(config)
     state = load_state(work_dir) if resume else None

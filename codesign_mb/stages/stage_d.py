@@ -43,10 +43,10 @@ from codesign_mb.stages.episodes import (
 )
 from codesign_mb.stages.fitting import EstimatorTraining, fit_estimator
 from codesign_mb.stages.qos_env import QosEnvConfig
+from codesign_mb.stages.stage import StageRun
 from codesign_mb.stages.stage_c import StageCConfig, train_stage_c
 from codesign_mb.stages.training import (
     Progress,
-    no_progress,
     require_at_least,
     seeded_torch,
     training_record,
@@ -120,12 +120,7 @@ class StageDConfig:
 
 def train_stage_d(
     config: StageDConfig,
-    *,
-    out_dir: str | Path,
-    work_dir: str | Path,
-    resume: bool = False,
-    progress: Progress = no_progress,
-    command: str | None = None,
+    run: StageRun,
 ) -> dict[str, Any]:
     """Run the synthesis; write ``<kind>.pt``, ``qos/`` and ``training.json`` to ``out_dir``.
 
@@ -133,12 +128,8 @@ def train_stage_d(
     continue the estimator's fit; re-train the QoS policy for it (stage C, warm-started);
     write ``training.json`` and ``curve.json``.
     """
-    out_dir, work_dir = Path(out_dir), Path(work_dir)
-    work_dir.mkdir(parents=True, exist_ok=True)
-    if not resume:
-        for old in work_dir.glob("*"):
-            if old.suffix in (".npz", ".pt"):
-                old.unlink()
+    out_dir, work_dir = run.out_dir, run.prepare_work_dir((".npz", ".pt"))
+    resume, progress, command = run.resume, run.progress, run.command
     started = time.perf_counter()
     probe = make_plant(config.plant)
     qos_dir = resolve_checkpoint(config.qos_policy)
@@ -161,15 +152,8 @@ def train_stage_d(
         features=saved.get("kind"),
         feature_options=dict(saved.get("options") or {}),
     )
-    qos_result = train_stage_c(
-        qos_config,
-        out_dir=out_dir / "qos",
-        work_dir=work_dir / "qos",
-        resume=resume,
-        progress=progress,
-        command=command,
-        stage="d",
-    )
+    qos_run = StageRun(out_dir / "qos", work_dir / "qos", resume, progress, command)
+    qos_result = train_stage_c(qos_config, qos_run, stage="d")
     env_steps = int(sum(fit.steps.values()))
     meta = training_record(
         stage="d",
