@@ -217,3 +217,132 @@ def test_lqg_demo_reads_its_latency_from_the_config_file(tmp_path: Path) -> None
     # tau = 3 and every packet delivered: the held measurement is 3 steps old once the first
     # arrives (step 3), and the initial hold counts 1, 2, 3 before it: mean age of 5 steps.
     assert data["rows"][0]["mean_age"] == pytest.approx((1 + 2 + 3 + 3 + 3) / 5)
+
+
+# -- issue 35: the examples, and what the command-line fuzzer found ----------------------------
+def _fig_cn_results(tmp_path: Path, change=None) -> Path:
+    """A real (tiny) results folder: Fig. 4's table as ``evaluate fig-cn`` writes it."""
+    import pandas as pd
+
+    table = pd.DataFrame(
+        {
+            "estimator": ["predictor", "predictor", "none", "none"],
+            "belt_speed_mps": [0.2] * 4,
+            "latency_steps": [0, 1, 0, 1],
+            "trials": [2] * 4,
+            "successes": [2, 1, 1, 0],
+            "success_rate": [1.0, 0.5, 0.5, 0.0],
+        }
+    )
+    results = tmp_path / "results"
+    write_results(results, table=change(table) if change else table, config={}, name="fig_cn")
+    return results
+
+
+def test_report_renders_the_tiny_results_folder(tmp_path: Path) -> None:
+    result = runner.invoke(app, ["report", str(_fig_cn_results(tmp_path)), "--json"])
+    assert result.exit_code == 0, result.output
+    assert set(json.loads(result.stdout)["figures"]) == {"fig_cn"}
+
+
+@pytest.mark.parametrize(
+    ("change", "needles"),
+    [
+        (lambda t: t.assign(success_rate="high"), ["success_rate must be a number in [0, 1]"]),
+        (lambda t: t.assign(latency_steps=[0.0, float("nan"), 0.0, 1.0]), ["row 1", "got nan"]),
+        (lambda t: t.assign(latency_steps=-1), ["latency_steps must be an integer >= 0"]),
+        (lambda t: t.assign(belt_speed_mps=float("nan")), ["belt_speed_mps", "got nan"]),
+        (lambda t: t.assign(successes=3), ["successes must be <= trials", "3 > 2"]),
+    ],
+)
+def test_report_refuses_a_column_it_cannot_draw(change, needles, tmp_path: Path) -> None:
+    results = _fig_cn_results(tmp_path, change)
+    one_line_error(
+        runner.invoke(app, ["report", str(results)]), str(results / "fig_cn.parquet"), *needles
+    )
+    assert not (results / "report").exists()  # checked before anything is written
+
+
+def test_report_refuses_a_folder_without_results(tmp_path: Path) -> None:
+    (tmp_path / "metadata.json").write_text('"str"')
+    line = one_line_error(runner.invoke(app, ["report", str(tmp_path)]), "not a results folder")
+    assert "metadata.json" in line
+    results = _fig_cn_results(tmp_path)
+    (results / "fig_cn.json").write_text('"str"')  # a table whose metadata is a string
+    one_line_error(runner.invoke(app, ["report", str(results)]), "fig_cn.json", "got str")
+
+
+def test_crosscheck_reads_a_recorded_ns3_run_without_ns3(tmp_path: Path) -> None:
+    recorded = Path(__file__).parents[1] / "docs" / "results" / "wifi_crosscheck.json"
+    grid = ["--mcs", "7", "--captures", "staggered", "--schedulers", "greedy"]
+    result = runner.invoke(
+        app, ["wifi", "crosscheck", *grid, "--ns3-from", str(recorded), "--json"]
+    )
+    assert result.exit_code == 0, result.output
+    row = json.loads(result.stdout)["rows"][0]
+    assert row["ns3_best"] == max(row[f"ns3_{a}"] for a in ("su", "su-rts", "ofdma")) > 0
+    trace = tmp_path / "trace.json"
+    _trace(tmp_path)  # valid JSON, but a trace, not an ns-3 run
+    for path, needle in [
+        (trace, "must be a JSON object with a list 'rows'"),
+        (tmp_path / "nope.json", "cannot be read"),
+    ]:
+        result = runner.invoke(app, ["wifi", "crosscheck", *grid, "--ns3-from", str(path)])
+        one_line_error(result, str(path), needle)
+    result = runner.invoke(app, ["wifi", "crosscheck", "--mcs", "5", "--ns3-from", str(recorded)])
+    one_line_error(result, "ns-3 is not installed", "no ns-3 result for su at MCS 5")
+
+
+@pytest.mark.parametrize(
+    ("text", "needles"),
+    [
+        ("belt_speeds_mps = [nan]", ["belt_speeds_mps[0] must be a finite number, got nan"]),
+        ("delays = [-1]", ["delays must be integers >= 0, got -1"]),
+        ("delays = []", ["delays must not be empty"]),
+        ("belt_speeds_mps = []", ["belt_speeds_mps must not be empty"]),
+        ("estimators = []", ["estimators must not be empty"]),
+    ],
+)
+def test_fig_cn_config_refuses(text: str, needles: list[str], tmp_path: Path) -> None:
+    path = _config(tmp_path, f"[fig_cn]\n{text}\n")
+    one_line_error(_run(["evaluate", "fig-cn", "-c", path], tmp_path), *needles, path)
+
+
+@pytest.mark.parametrize(
+    ("args", "needles"),
+    [
+        (["evaluate", "--trials", "nan"], ["'--trials'", "codesign evaluate --help"]),
+        (["evaluate", "--bogus", "1"], ["No such option: --bogus"]),
+        (["wifi", "nope"], ["No such command 'nope'", "codesign wifi --help"]),
+        (["solve"], ["Missing argument"]),
+        (["wifi", "crosscheck", "--ns3", "none", "--periods", "100000000"], ["periods must be <="]),
+        (["wifi", "crosscheck", "--ns3", "none", "--mcs", ","], ["mcs must name at least one"]),
+        (["wifi", "crosscheck", "--ns3", "none", "--out", "/proc/x.json"], ["out: cannot write"]),
+        (["evaluate", "-o", "/proc/codesign"], ["--out: cannot write into '/proc/codesign'"]),
+        (["evaluate", "fig-cn", "-o", "/proc/codesign"], ["--out: cannot write into"]),
+        (["sweep", "-o", "/proc/codesign"], ["--out: cannot write into"]),
+        (["table", "-o", "/proc/codesign"], ["--out: cannot write into"]),
+        (["tune", "-o", "/proc/codesign"], ["--out: cannot write into"]),
+        (["wifi", "capacity", "-o", "/proc/codesign"], ["--out: cannot write into"]),
+        (["table", "--seeds", ","], ["seeds must name at least one seed"]),
+        (
+            ["calibrate-perception", "--seed-set", "test", "-o", "{tmp}/c.json"],
+            ["refusing to calibrate on the 'test' seed set"],
+        ),
+        (
+            ["demo", "--scenario", "robot", "--horizon", "5"],
+            ["--horizon applies to --scenario lqg"],
+        ),
+        (["train", "a", "--seed", "-1"], ["seed must be >= 0, got -1"]),
+        (["report", "{tmp}", "--seed", "1000000000000000"], ["seed must be <= 4294967295"]),
+        (["wifi", "capacity", "--seed", "1000000000000000"], ["seed must be <= 4294967295"]),
+        (["render", "--seed", "1000000000000000", "-o", "{tmp}/r.gif"], ["seed must be <= "]),
+    ],
+)
+def test_command_line_is_refused_before_any_work(
+    args: list[str], needles: list[str], tmp_path: Path
+) -> None:
+    """Found by the command-line fuzzer (and the issue's usage errors): each was accepted and
+    ran (some until killed), failed after work began, or printed click's boxed usage text."""
+    args = [a.format(tmp=tmp_path) for a in args]
+    one_line_error(runner.invoke(app, args), *needles)

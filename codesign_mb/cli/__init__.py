@@ -10,6 +10,8 @@ import os
 
 import typer
 
+from codesign_mb.cli.common import CodesignGroup
+
 __all__ = ["app", "main"]
 
 app = typer.Typer(
@@ -18,6 +20,7 @@ app = typer.Typer(
     no_args_is_help=True,
     add_completion=False,
     pretty_exceptions_enable=False,
+    cls=CodesignGroup,
 )
 
 # Each module defines ``register(app: typer.Typer) -> None``.

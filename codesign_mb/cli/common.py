@@ -37,6 +37,9 @@ Conventions
   ``error: <message>`` on stderr and exit code 2. Any other exception (a ``TypeError`` in the
   code included) is a bug: exit code 1, and ``codesign --debug`` (``CODESIGN_DEBUG=1``)
   shows its traceback.
+- What click itself refuses (a value it cannot parse, an unknown option or command, a
+  missing argument) is one line too, with a pointer to ``--help`` (:class:`CodesignGroup`,
+  the root group); output folders are checked before any work (:func:`writable_folder`).
 - Results go to stdout (:func:`emit`: a rich table, or JSON with ``--json``); progress and
   notes go to stderr, so ``codesign ... --json | jq`` always sees pure JSON.
 """
@@ -55,12 +58,14 @@ from typing import Annotated, Any, ParamSpec, TypeVar
 
 import click
 import typer
+from typer.core import TyperGroup
 
 from codesign_mb.core.config import ConfigError, from_mapping, load_config_file
 
 __all__ = [
     "SCENARIO_HELP",
     "SCENARIO_NAMES",
+    "CodesignGroup",
     "ConfigOption",
     "FreshOption",
     "JsonOption",
@@ -76,6 +81,7 @@ __all__ = [
     "progress_bar",
     "refuse_package_models",
     "track",
+    "writable_folder",
 ]
 
 P = ParamSpec("P")
@@ -140,6 +146,51 @@ OutOption = Annotated[
 ]
 
 
+_UsageError: type[Exception] = next(
+    c for c in typer.BadParameter.__mro__ if c.__name__ == "UsageError"
+)
+"""click's ``UsageError`` as typer raises it (typer may vendor its own click)."""
+
+
+class CodesignGroup(TyperGroup):
+    """The root command group: a usage error is one line ``error: ...``, exit code 2.
+
+    click reports a value it cannot parse (``--trials nan`` for an integer), an unknown
+    option or command, or a missing argument with the usage and a boxed message. Here it is
+    one line like every other bad input (:func:`cli_errors`), pointing to ``--help``::
+
+        error: Invalid value for '--trials' / '-n': ... (see codesign evaluate --help)
+
+    Parse errors of subcommands surface in the root's :meth:`invoke` (a group parses its
+    subcommand there), those of the root's own options in :meth:`make_context`. With no
+    arguments the help is shown as before; ``--debug`` keeps click's own report.
+    """
+
+    def make_context(
+        self, info_name: str | None, args: list[str], parent: Any = None, **extra: Any
+    ) -> Any:
+        with _one_line_usage_errors():
+            return super().make_context(info_name, args, parent=parent, **extra)
+
+    def invoke(self, ctx: Any) -> Any:
+        with _one_line_usage_errors():
+            return super().invoke(ctx)
+
+
+@contextlib.contextmanager
+def _one_line_usage_errors() -> Iterator[None]:
+    try:
+        yield
+    except _UsageError as exc:
+        if type(exc).__name__ == "NoArgsIsHelpError" or os.environ.get("CODESIGN_DEBUG"):
+            raise  # the help text itself, or click's own report under --debug
+        ctx = getattr(exc, "ctx", None)
+        hint = f" (see {ctx.command_path} --help)" if ctx is not None else ""
+        message = exc.format_message() if hasattr(exc, "format_message") else str(exc)
+        typer.echo(f"error: {' '.join(message.split())}{hint}", err=True)
+        raise typer.Exit(code=USAGE_ERROR_EXIT_CODE) from None
+
+
 def cli_errors(func: Callable[P, R]) -> Callable[P, R]:
     """Decorate a typer command so that nothing a user types ends in a traceback.
 
@@ -159,8 +210,8 @@ def cli_errors(func: Callable[P, R]) -> Callable[P, R]:
     def wrapper(*args: P.args, **kwargs: P.kwargs) -> R:
         try:
             return func(*args, **kwargs)
-        except (typer.Exit, typer.Abort, click.exceptions.ClickException):
-            raise
+        except (typer.Exit, typer.Abort, typer.TyperException, click.exceptions.ClickException):
+            raise  # typer.BadParameter & co.: a usage error, reported by CodesignGroup
         except KeyboardInterrupt as exc:
             if os.environ.get("CODESIGN_DEBUG"):
                 raise
@@ -459,6 +510,33 @@ def _set_dotted(data: dict[str, Any], key: str, value: Any) -> None:
         node[part] = child
         node = child
     node[leaf] = list(value) if isinstance(value, tuple) else value
+
+
+def writable_folder(option: str, folder: Path) -> None:
+    """``ValueError`` unless ``folder`` is, or can be made, a folder that takes new files.
+
+    Checked before any work, so a run is not lost at its first write (``/proc/x``, a file in
+    the way, a read-only mount). Nothing is created: a temporary file is made and removed in
+    ``folder``, or in its nearest existing ancestor when ``folder`` is still to be made.
+    """
+    import tempfile
+
+    target = Path(folder)
+    nearest = target
+    while not nearest.exists() and nearest != nearest.parent:
+        nearest = nearest.parent
+    if not nearest.is_dir():
+        raise ValueError(
+            f"{option} {str(target)!r}: {str(nearest)!r} is a file, not a folder"
+            if nearest == target
+            else f"{option} {str(target)!r}: cannot make a folder under the file {str(nearest)!r}"
+        )
+    try:
+        with tempfile.NamedTemporaryFile(dir=nearest, prefix=".codesign-check-"):
+            pass
+    except OSError as exc:
+        reason = exc.strerror or str(exc)
+        raise ValueError(f"{option}: cannot write into {str(target)!r} ({reason})") from None
 
 
 def refuse_package_models(*folders: tuple[str, Path]) -> None:

@@ -114,6 +114,10 @@ def demo(
     lqg_only = explicit(ctx, {"plant": plant, "horizon": horizon})
     if scenario == "robot" and lqg_only and not explicit(ctx, {"scenario": scenario}):
         scenario = "lqg"  # the LQG-only options --plant/--horizon select that scenario
+    if scenario == "robot" and lqg_only:
+        given = " and ".join(f"--{k}" for k in lqg_only)
+        verb = "apply" if len(lqg_only) > 1 else "applies"
+        raise ValueError(f"{given} {verb} to --scenario lqg only, got --scenario robot")
     if scenario == "robot":  # MPC + predictor on the conveyor (part MPC's module)
         _robot_demo(
             ctx,

@@ -26,6 +26,7 @@ from codesign_mb.cli.common import (
     note,
     progress_bar,
     track,
+    writable_folder,
 )
 
 __all__ = ["evaluate_command", "fig_cn_command", "register"]
@@ -112,6 +113,7 @@ def evaluate_command(
         ),
         section="evaluate",
     )
+    writable_folder("--out", out)
     label = evaluation_label(cfg)
     with progress_bar(label, disable=as_json) as progress:
         result = run_evaluation(cfg, out, name=name, progress=progress, fresh=fresh)
@@ -174,6 +176,7 @@ def fig_cn_command(
         ),
         section="fig_cn",
     )
+    writable_folder("--out", out)
     skipped = learned_skip_reason(cfg)
     if skipped is not None and not as_json:
         note(f"learned rows skipped: {skipped}")

@@ -122,6 +122,11 @@ def calibrate_perception(
 
     if not overwrite:
         refuse_package_models(("--out", out))
+    if seed_set_name == "test":  # the error model is fitted: only on dev (as tune refuses)
+        raise ValueError(
+            "refusing to calibrate on the 'test' seed set: reported numbers come from it, so "
+            "a fitted error model must not see it (use 'dev'; DESIGN.md, evaluation protocol)"
+        )
     command = "codesign " + shlex.join(sys.argv[1:])
     with progress_bar("calibrate", disable=as_json) as progress:
         summary = calibrate(

@@ -19,6 +19,7 @@ from codesign_mb.cli.common import (
     load_config,
     note,
     track,
+    writable_folder,
 )
 
 __all__ = ["register", "sweep_command"]
@@ -152,6 +153,7 @@ def sweep_command(
     )
     overrides.update(_parse_param(p) for p in params or [])
     cfg = load_config(SweepConfig, config, overrides, section="sweep")
+    writable_folder("--out", out)
     result = run_sweep(  # Ctrl-C: cli_errors says which trials are kept
         cfg,
         out,

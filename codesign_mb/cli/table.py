@@ -59,6 +59,7 @@ from codesign_mb.cli.common import (
     load_config,
     note,
     track,
+    writable_folder,
 )
 
 __all__ = ["register", "table_command"]
@@ -167,6 +168,7 @@ def table_command(
         ),
         section="table",
     )
+    writable_folder("--out", out)
     started = time.perf_counter()
     with _runtime_warnings_as_notes():
         result = run_table_study(
@@ -191,7 +193,12 @@ def table_command(
 
 def _seed_list(text: str | None) -> tuple[int, ...] | None:
     """``"0,1,2"`` -> ``(0, 1, 2)``; ``None`` stays ``None`` (``--seeds`` not given)."""
-    return None if text is None else comma_list(text, "seeds", item=int, example="0,1,2")
+    if text is None:
+        return None
+    seeds = comma_list(text, "seeds", item=int, example="0,1,2")
+    if not seeds:
+        raise ValueError(f"seeds must name at least one seed, like 0,1,2, got {text!r}")
+    return seeds
 
 
 @contextlib.contextmanager

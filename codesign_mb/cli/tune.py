@@ -40,6 +40,7 @@ from codesign_mb.cli.common import (
     load_config,
     note,
     progress_bar,
+    writable_folder,
 )
 from codesign_mb.plants.scenarios import DEFAULT_SCENARIO
 
@@ -130,10 +131,11 @@ def tune_command(
     )
     if write and cfg.plant is not None:
         raise ValueError("--write stores thresholds by scenario; this config tunes a custom plant")
+    out = out if out is not None else Path("results/tune") / cfg.target_name()
+    writable_folder("--out", out)
     command = "codesign " + shlex.join(sys.argv[1:])
     with progress_bar(f"tune {cfg.target_name()}", disable=as_json) as progress:
         result = run_tune(cfg, progress=progress)
-    out = out if out is not None else Path("results/tune") / cfg.target_name()
     write_tune_results(result, out, command=command)
     note(f"results written to {out}")
     if result.limited_by == "high":

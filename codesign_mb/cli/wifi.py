@@ -22,6 +22,7 @@ from codesign_mb.cli.common import (
     note,
     progress_bar,
     track,
+    writable_folder,
 )
 
 __all__ = [
@@ -233,6 +234,7 @@ def capacity_command(
     if "robots" in overrides:
         overrides["robots"] = list(_parse_robots(str(overrides["robots"])))
     cfg = load_config(CapacityConfig, config, overrides, section="capacity")
+    writable_folder("--out", out)
     n_points = len(cfg.points())
     if not as_json:
         stop = f", fewer with the early stop below {cfg.stop_below:.0%}" if cfg.stop_below else ""
@@ -285,7 +287,8 @@ def crosscheck_command(
         Path | None,
         typer.Option(
             "--ns3-from",
-            help="Reuse the ns-3 results of an earlier --out file (same grid). \\[default: none]",
+            help="Reuse the ns-3 results of an earlier --out file (same grid); reading them "
+            "needs no ns-3. \\[default: none]",
             show_default=False,
         ),
     ] = None,
@@ -300,17 +303,21 @@ def crosscheck_command(
     """
     import json
 
+    from codesign_mb.core.config import check_writable
     from codesign_mb.core.results import atomic_write
-    from codesign_mb.wifi.crosscheck import CrosscheckConfig, assumptions, crosscheck
+    from codesign_mb.wifi.crosscheck import (
+        CrosscheckConfig,
+        MissingNs3Result,
+        assumptions,
+        crosscheck,
+        ns3_missing,
+        read_ns3_run,
+    )
+    from codesign_mb.wifi.ns3_driver import ns3_available
 
     access = (
         () if ns3.strip() in ("", "none") else comma_list(ns3, "ns3", example="su,su-rts,ofdma")
     )
-    if access:
-        from codesign_mb.wifi.ns3_driver import ns3_available
-
-        if not ns3_available():
-            raise ValueError("ns-3 is not installed: pip install 'codesign-mb[ns3]', or --ns3 none")
     cfg = CrosscheckConfig(
         mcs=comma_list(mcs, "mcs", item=int, example="0,3,7"),
         captures=comma_list(captures, "captures", example="staggered,synchronised"),
@@ -319,7 +326,24 @@ def crosscheck_command(
         max_stations=max_stations,
         periods=periods,
     )
-    known = json.loads(ns3_from.read_text())["rows"] if ns3_from is not None else None
+    if out is not None:
+        check_writable("out", out)
+    # A recorded run is read as JSON: reusing it needs no ns-3, unless it lacks a cell.
+    known = read_ns3_run(ns3_from) if ns3_from is not None else None
+    simulate = bool(access) and ns3_available()
+    if access and not simulate:
+        missing = ns3_missing(cfg, known)
+        if missing:
+            shown = ", ".join(f"{a} at MCS {m}, {c}" for m, c, a in missing[:3])
+            more = f" and {len(missing) - 3} more" if len(missing) > 3 else ""
+            raise ValueError(
+                "ns-3 is not installed: pip install 'codesign-mb[ns3]', or --ns3 none"
+                + (
+                    f"; the recorded run {str(ns3_from)!r} has no ns-3 result for {shown}{more}"
+                    if ns3_from is not None
+                    else ", or --ns3-from an earlier --out file that has its results"
+                )
+            )
 
     def save(rows: list[dict[str, Any]]) -> None:
         if out is not None:
@@ -327,9 +351,22 @@ def crosscheck_command(
             with atomic_write(out, "w") as fh:
                 json.dump(report, fh, indent=1)
 
-    rows = crosscheck(cfg, progress=None if as_json else note, ns3_known=known, on_row=save)
+    try:
+        rows = crosscheck(
+            cfg,
+            progress=None if as_json else note,
+            ns3_known=known,
+            on_row=save,
+            simulate_ns3=simulate,
+        )
+    except MissingNs3Result as exc:
+        raise ValueError(f"{exc} (recorded run {str(ns3_from)!r})") from None
     table = [{k: v for k, v in r.items() if not k.endswith("_fractions")} for r in rows]
-    report = {"rows": rows, "assumptions": assumptions(cfg), "tolerance": cfg.tolerance}
+    report: dict[str, Any] = {
+        "rows": rows,
+        "assumptions": assumptions(cfg),
+        "tolerance": cfg.tolerance,
+    }
     if out is not None:
         note(f"wrote {out}")
     if as_json:

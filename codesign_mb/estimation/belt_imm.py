@@ -325,7 +325,11 @@ class BeltImmPredictor:
             return mu, moved, grown
         # IMM mixing (eq. of Blom and Bar-Shalom): mode j starts from the mixture of the others.
         c = self.Pi.T @ mu  # c_j = sum_i Pi_ij mu_i
-        weights = self.Pi * mu[:, None] / np.maximum(c[None, :], 1e-300)  # mu_{i|j}
+        # mu_{i|j}: each column sums to 1 for every mode j of probability c_j > 0, however small
+        # (a floor on c_j would shrink the mixed mean and covariance of a mode below it).
+        weights = np.divide(
+            self.Pi * mu[:, None], c[None, :], out=np.zeros_like(self.Pi), where=c[None, :] > 0
+        )
         mixed = weights.T @ means
         spread = means[None, :, :] - mixed[:, None, :]  # [j, i, :]
         mixed_cov = np.einsum("ij,ikl->jkl", weights, covs) + np.einsum(
@@ -381,9 +385,12 @@ class BeltImmPredictor:
         quad = np.einsum("ji,ji->j", innovations, solved)
         _, logdet = np.linalg.slogdet(S_j)
         loglik = -0.5 * (quad + logdet + len(z) * math.log(2 * math.pi))
-        log_post = np.log(np.maximum(mu, 1e-300)) + loglik
+        # Modes of probability 0 stay at 0 and do not set the scale: when one of them fits the
+        # packet far better than every possible mode, exp() of the others would underflow.
+        possible = mu > 0
+        log_post = np.where(possible, np.log(np.where(possible, mu, 1.0)) + loglik, -np.inf)
         log_post -= log_post.max()
-        post = np.exp(log_post) * (mu > 0)
+        post = np.exp(log_post)
         post /= post.sum()
         new_means = means + np.einsum("jkl,jl->jk", gains, innovations)
         IKH = np.eye(N_STATE)[None] - gains @ H

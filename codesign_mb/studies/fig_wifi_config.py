@@ -82,6 +82,7 @@ from codesign_mb.adaptation.rules import AgeTriggeredQos
 from codesign_mb.core.config import (
     EPISODES_CAP,
     ROBOTS_CAP,
+    SEED_CAP,
     STEPS_CAP,
     WORKERS_CAP,
     check_range,
@@ -292,6 +293,9 @@ class CapacityConfig:
     workers: int = 1
 
     def __post_init__(self) -> None:
+        if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
+            raise ValueError(f"seed must be a non-negative integer, got {self.seed!r}")
+        check_range("seed", self.seed, cap=SEED_CAP)
 
         def counts(name: str, value: Any) -> tuple[int, ...]:
             out = tuple(int(n) for n in value)

@@ -25,7 +25,13 @@ from numpy.typing import NDArray
 
 from codesign_mb.adaptation.base import StaticQos
 from codesign_mb.control.scripted import ScriptedPickController
-from codesign_mb.core.config import STEPS_CAP, check_range, check_writable, from_mapping
+from codesign_mb.core.config import (
+    SEED_CAP,
+    STEPS_CAP,
+    check_range,
+    check_writable,
+    from_mapping,
+)
 from codesign_mb.network import BernoulliLink, LinkObservationWrapper
 from codesign_mb.plants.conveyor import ConveyorConfig, ConveyorPickPlace
 from codesign_mb.robot.camera import EDGE_CAMERA, Detection, EdgeCamera
@@ -78,6 +84,7 @@ class RenderConfig:
             if value < low:
                 raise ValueError(f"{name} must be >= {low}, got {value}")
         check_range("steps", self.steps, cap=STEPS_CAP)
+        check_range("seed", self.seed, cap=SEED_CAP)
         check_range("fps", self.fps, le=1000)
 
 

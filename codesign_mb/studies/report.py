@@ -53,6 +53,11 @@ versus ``n_robots``, one panel per belt speed, one line per pipeline.
 A table with ``mpc_failures`` (per episode, or summed per row) shows the failed MPC solves,
 summed, next to its success rates.
 
+Values are checked before anything is drawn (:mod:`~codesign_mb.studies.report_checks`): a
+success that is not true/false, a rate outside [0, 1], a NaN or negative latency or robot
+count, text in a number column stop the report with the table file, row and value; a missing
+optional metric (NaN in ``mean_requested_reliability``, ``mpc_failures``, ...) is allowed.
+
 Figures
 -------
 The report draws each figure with the one renderer of the study that owns it:
@@ -75,6 +80,12 @@ from typing import Any
 import pandas as pd
 
 from codesign_mb.core.results import ResultsDir, atomic_write, package_version
+from codesign_mb.studies.report_checks import (
+    SUCCESS_COLUMNS,
+    check_sweep,
+    check_values,
+    not_results,
+)
 from codesign_mb.studies.report_sections import (
     LABEL_COLUMNS,
     PAPER_TAB_P,
@@ -128,7 +139,6 @@ PIPELINE_ALIASES: dict[str, str] = {
 """Other spellings of the two pipelines."""
 
 _NEEDS_SUCCESS = ("tab_p", "fig_cn", "fig_wifi")
-_SUCCESS_COLUMNS = ("success", "successes", "success_rate")
 
 
 @dataclass(frozen=True)
@@ -184,7 +194,7 @@ def collect(results: ResultsDir, name: str) -> pd.DataFrame | None:
 def _check(frame: pd.DataFrame, name: str) -> str | None:
     """Why ``frame`` cannot be rendered as ``name`` (``None`` if it can)."""
     missing = [c for c in REPORT_TABLES[name] if c not in frame.columns]
-    if name in _NEEDS_SUCCESS and not set(_SUCCESS_COLUMNS) & set(frame.columns):
+    if name in _NEEDS_SUCCESS and not set(SUCCESS_COLUMNS) & set(frame.columns):
         missing.append("success | successes | success_rate")
     if name == "tab_p" and not labels_of(frame):
         missing.append(" | ".join(LABEL_COLUMNS))
@@ -221,32 +231,47 @@ def build_report(
     Returns
     -------
     Report
-        The sections rendered and the tables skipped, with the reason.
+        The sections rendered and the tables skipped (absent, or without a column their
+        figure needs), with the reason.
+
+    Raises
+    ------
+    ValueError
+        ``results_dir`` is missing or holds no results table at all ("not a results
+        folder"); a table's metadata is not a JSON object; a column a figure is drawn from
+        holds a value it cannot mean (text, NaN, a rate outside [0, 1], a negative latency:
+        :mod:`~codesign_mb.studies.report_checks`), named with its table file, row and value; a
+        sweep table has no numeric ``cfg.metric`` column. Nothing is written then.
     """
     cfg = config or ReportConfig()
     results = ResultsDir(results_dir)
+    if not results.names:
+        raise ValueError(not_results(results.path))
+    sweeps = [n for n in results.names if results.meta(n).get("extra", {}).get("kind") == "sweep"]
+    # Every table is checked before anything is drawn: a corrupt one stops the report whole.
+    frames: dict[str, pd.DataFrame] = {}
+    skipped: dict[str, str] = {}
+    for name in REPORT_TABLES:
+        frame = collect(results, name)
+        problem = "no such table in the results folder" if frame is None else _check(frame, name)
+        if problem:
+            skipped[name] = problem
+            continue
+        assert frame is not None
+        check_values(frame, name, results, required=REPORT_TABLES[name])
+        frames[name] = frame
+    for name in sweeps:
+        frames[name] = results.table(name)
+        check_sweep(name, frames[name], cfg.metric, results)
     out = Path(out_dir) if out_dir is not None else results.path / "report"
     out.mkdir(parents=True, exist_ok=True)
-    sweeps = [n for n in results.names if results.meta(n).get("extra", {}).get("kind") == "sweep"]
-    todo = [*REPORT_TABLES, *sweeps]
     sections: list[Section] = []
-    skipped: dict[str, str] = {}
+    todo = list(frames)
     for name in progress(todo) if progress is not None else todo:
         if name in REPORT_TABLES:
-            frame = collect(results, name)
-            if frame is None:
-                skipped[name] = "no such table in the results folder"
-                continue
-            problem = _check(frame, name)
-            if problem:
-                skipped[name] = problem
-                continue
-            sections.append(RENDERERS[name](frame, out, cfg))
+            sections.append(RENDERERS[name](frames[name], out, cfg))
         else:
-            try:
-                sections.append(render_sweep(name, results.table(name), out, cfg))
-            except (KeyError, ValueError) as exc:
-                skipped[name] = str(exc)
+            sections.append(render_sweep(name, frames[name], out, cfg))
     markdown = _markdown(results, sections, skipped)
     md_path = out / "report.md"
     with atomic_write(md_path, "w") as fh:

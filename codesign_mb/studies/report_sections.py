@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from codesign_mb.core.config import Cap, check_range
+from codesign_mb.core.config import SEED_CAP, Cap, check_range
 from codesign_mb.core.stats import wilson_interval
 from codesign_mb.studies import (
     fig_cn,
@@ -108,6 +108,7 @@ class ReportConfig:
             raise ValueError(f"confidence must be in (0, 1), got {self.confidence!r}")
         if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
             raise ValueError(f"seed must be a non-negative integer, got {self.seed!r}")
+        check_range("seed", self.seed, cap=SEED_CAP)
         if not isinstance(self.metric, str) or not self.metric:
             raise ValueError(f"metric must be a column name, got {self.metric!r}")
 

@@ -16,17 +16,21 @@ round-robin OFDMA scheduler.
 
 from __future__ import annotations
 
+import json
 import math
 import multiprocessing
+import numbers
 from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field, replace
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pandas as pd
 
+from codesign_mb.core.config import Cap, check_range, show
 from codesign_mb.wifi.channel import ChannelConfig
 from codesign_mb.wifi.config import WifiConfig
 from codesign_mb.wifi.mac import MacTiming
@@ -38,10 +42,15 @@ __all__ = [
     "CROSSCHECK_TARGET",
     "NS3_SCHEMES",
     "CrosscheckConfig",
+    "MissingNs3Result",
     "capacity",
     "crosscheck",
+    "ns3_missing",
     "ours_delivered_fraction",
+    "read_ns3_run",
 ]
+
+PERIODS_CAP = Cap(1_000, "40 ms periods of one cross-check run (40 s)")
 
 CROSSCHECK_TARGET = 0.95
 """Delivered fraction that defines capacity."""
@@ -116,6 +125,9 @@ class CrosscheckConfig:
     mac: MacTiming = field(default_factory=MacTiming)
 
     def __post_init__(self) -> None:
+        for name in ("mcs", "captures", "schedulers"):
+            if not getattr(self, name):
+                raise ValueError(f"{name} must name at least one, got none")
         for m in self.mcs:
             if not (isinstance(m, int) and 0 <= m <= 11):
                 raise ValueError(f"mcs must be integers in [0, 11], got {self.mcs!r}")
@@ -127,8 +139,8 @@ class CrosscheckConfig:
                 raise ValueError(f"captures must be in {CAPTURE_MODES}, got {self.captures!r}")
         if not 1 <= self.max_stations <= 200:
             raise ValueError(f"max_stations must be in [1, 200], got {self.max_stations!r}")
-        if self.periods < 1 or self.skip_periods < 0:
-            raise ValueError("periods must be >= 1 and skip_periods >= 0")
+        check_range("periods", self.periods, ge=1, cap=PERIODS_CAP)
+        check_range("skip_periods", self.skip_periods, ge=0, cap=PERIODS_CAP)
         if not 0 < self.tolerance < 1:
             raise ValueError(f"tolerance must be in (0, 1), got {self.tolerance!r}")
 
@@ -232,6 +244,96 @@ def capacity(
     return lo, seen
 
 
+class MissingNs3Result(ValueError):
+    """A point the capacity search needs is neither recorded nor can be simulated (no ns-3)."""
+
+
+def read_ns3_run(path: str | Path) -> list[dict[str, Any]]:
+    """The rows of a cross-check written by ``codesign wifi crosscheck --out``, checked.
+
+    Reading them needs no ns-3: the file is JSON. It must hold an object with ``rows``, a
+    list of objects each with an integer ``mcs``, a ``capture`` string and, for at least one
+    row, ns-3 delivered fractions ``ns3_<scheme>_fractions`` (:data:`NS3_SCHEMES`): station
+    counts (integers >= 1, as strings) -> fractions in [0, 1] (NaN: ns-3 aborted there).
+
+    Raises
+    ------
+    ValueError
+        The file is missing, is not JSON, or is not such a run; the message names the file
+        and the entry at fault.
+    """
+    path = Path(path)
+    where = f"recorded ns-3 run {str(path)!r}"
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError) as exc:
+        reason = getattr(exc, "strerror", None) or str(exc)
+        raise ValueError(f"{where} cannot be read ({reason})") from None
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{where} is not valid JSON: {exc}") from None
+    if not isinstance(data, dict) or not isinstance(data.get("rows"), list):
+        got = (
+            f"an object with keys {', '.join(map(repr, list(data)[:5]))}"
+            if isinstance(data, dict) and data
+            else show(data)
+        )
+        raise ValueError(
+            f"{where} must be a JSON object with a list 'rows' (the --out file of "
+            f"codesign wifi crosscheck), got {got}"
+        )
+    found = False
+    for i, row in enumerate(data["rows"]):
+        entry = f"{where}: rows[{i}]"
+        if not isinstance(row, dict):
+            raise ValueError(f"{entry} must be an object, got {show(row)}")
+        mcs = row.get("mcs")
+        if isinstance(mcs, bool) or not isinstance(mcs, int):
+            raise ValueError(f"{entry}.mcs must be an integer, got {show(mcs)}")
+        if not isinstance(row.get("capture"), str):
+            raise ValueError(f"{entry}.capture must be a string, got {show(row.get('capture'))}")
+        for access in NS3_SCHEMES:
+            key = f"ns3_{access}_fractions"
+            if key not in row:
+                continue
+            found = True
+            fractions = row[key]
+            if not isinstance(fractions, dict):
+                raise ValueError(f"{entry}.{key} must be an object, got {show(fractions)}")
+            for n, value in fractions.items():
+                if not (isinstance(n, str) and n.isdigit() and int(n) >= 1):
+                    raise ValueError(
+                        f"{entry}.{key} keys must be station counts >= 1, got {show(n)}"
+                    )
+                ok = isinstance(value, numbers.Real) and not isinstance(value, bool)
+                if not ok or not (math.isnan(value) or 0.0 <= value <= 1.0):
+                    raise ValueError(
+                        f"{entry}.{key}[{n!r}] must be a fraction in [0, 1], got {show(value)}"
+                    )
+    if not found:
+        raise ValueError(
+            f"{where} holds no ns-3 results (no row has ns3_<scheme>_fractions, schemes "
+            f"{', '.join(NS3_SCHEMES)}): not the --out file of a cross-check that ran ns-3"
+        )
+    return list(data["rows"])
+
+
+def ns3_missing(
+    cfg: CrosscheckConfig, rows: list[dict[str, Any]] | None
+) -> list[tuple[int, str, str]]:
+    """The ``(mcs, capture, scheme)`` cells of ``cfg``'s grid with no ns-3 result in ``rows``.
+
+    Without ns-3 installed, a cross-check can only reuse a recorded run that covers them all.
+    """
+    recorded = {(r["mcs"], r["capture"]): r for r in rows or []}
+    return [
+        (mcs, capture, access)
+        for mcs in cfg.mcs
+        for capture in cfg.captures
+        for access in cfg.ns3_access
+        if not recorded.get((mcs, capture), {}).get(f"ns3_{access}_fractions")
+    ]
+
+
 def _ours_fraction(
     cfg: CrosscheckConfig, cell: WifiConfig, scheduler: str
 ) -> Callable[[int], float]:
@@ -251,6 +353,7 @@ def _ns3_fraction(
     known: dict[int, float],
     progress: Callable[[str], None] | None = None,
     failed: list[int] | None = None,
+    simulate: bool = True,
 ) -> Callable[[int], float]:
     from codesign_mb.wifi.ns3_driver import Ns3Scenario
 
@@ -259,6 +362,12 @@ def _ns3_fraction(
     def fraction(n: int) -> float:
         if n in known:
             return known[n]
+        if not simulate:
+            raise MissingNs3Result(
+                f"the recorded ns-3 run has no {access} result at MCS {mcs}, {capture}, "
+                f"{n} stations, which the capacity search needs (recorded with other settings?), "
+                "and ns-3 is not installed to simulate it: pip install 'codesign-mb[ns3]'"
+            )
         if progress is not None:
             progress(f"  ns-3 {access}, MCS {mcs}, {capture}, {n} stations ...")
         scheme = NS3_SCHEMES[access]
@@ -310,12 +419,15 @@ def crosscheck(
     progress: Callable[[str], None] | None = None,
     ns3_known: list[dict[str, Any]] | None = None,
     on_row: Callable[[list[dict[str, Any]]], None] | None = None,
+    simulate_ns3: bool = True,
 ) -> list[dict[str, Any]]:
     """One row per (MCS, capture): our capacity and ns-3's, per scheme, and the relative gap.
 
-    ``ns3_known``: rows of an earlier cross-check (same ns-3 settings) whose ns-3 delivered
-    fractions are reused instead of simulated again; ``on_row`` gets the rows so far after
-    each (to save partial results).
+    ``ns3_known``: rows of an earlier cross-check (same ns-3 settings, e.g. from
+    :func:`read_ns3_run`) whose ns-3 delivered fractions are reused instead of simulated
+    again; ``on_row`` gets the rows so far after each (to save partial results). With
+    ``simulate_ns3=False`` (no ns-3 installed) a point the search needs that ``ns3_known``
+    lacks is a ``ValueError``.
     """
     rows: list[dict[str, Any]] = []
     earlier = {(r["mcs"], r["capture"]): r for r in ns3_known or []}
@@ -337,7 +449,9 @@ def crosscheck(
                 old = earlier.get((mcs, capture), {}).get(f"ns3_{access}_fractions", {})
                 known = {int(n): float(v) for n, v in old.items()}
                 failed: list[int] = []
-                fraction = _ns3_fraction(cfg, mcs, capture, access, known, progress, failed)
+                fraction = _ns3_fraction(
+                    cfg, mcs, capture, access, known, progress, failed, simulate_ns3
+                )
                 # from the earlier runs' counts when there are some, else from ours
                 cap, seen = capacity(
                     fraction, cfg.max_stations, guess=guess, step=1.25, known=known
