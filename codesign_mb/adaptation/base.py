@@ -1,4 +1,5 @@
-"""Static and random QoS: the paper's baseline and the reference that sends at random.
+"""Static, random and scheduled QoS: the paper's baseline, the reference that sends at random,
+and a fixed schedule (the clairvoyant search replays one).
 
 The interface, :class:`QosPolicy`, is the network's.
 """
@@ -12,7 +13,7 @@ from numpy.typing import NDArray
 
 from codesign_mb.network.qos import QosPolicy, QosRequest
 
-__all__ = ["QosPolicy", "RandomQos", "StaticQos"]
+__all__ = ["QosPolicy", "RandomQos", "ScheduledQos", "StaticQos"]
 
 
 @dataclass(frozen=True)
@@ -76,3 +77,47 @@ class RandomQos:
 
     def request(self, observation: NDArray[np.float64], age: int) -> QosRequest:
         return self._send if self._rng.random() < self.probability else self._skip
+
+
+class ScheduledQos:
+    """Ask ``q = 1`` at the given steps of the episode and ``q = 0`` at every other: open loop.
+
+    A schedule found offline (:mod:`codesign_mb.evaluation.clairvoyant`) replays exactly: the
+    ``k``-th request of an episode is step ``k`` (``reset`` starts the count again).
+
+    Parameters
+    ----------
+    steps:
+        The steps that ask for a packet (integers >= 0).
+    latency_steps:
+        The latency ``tau`` of every request.
+
+    Examples
+    --------
+    >>> policy = ScheduledQos(steps=(1, 3))
+    >>> policy.reset()
+    >>> [policy.request(np.zeros(3), 0).reliability for _ in range(5)]
+    [0.0, 1.0, 0.0, 1.0, 0.0]
+    """
+
+    def __init__(self, steps: tuple[int, ...] | list[int] = (), latency_steps: int = 1) -> None:
+        chosen = tuple(steps)
+        if any(isinstance(t, bool) or not isinstance(t, (int, np.integer)) for t in chosen):
+            raise TypeError(f"steps must be integers, got {chosen!r}")
+        if any(t < 0 for t in chosen):
+            raise ValueError(f"steps must be >= 0, got {chosen!r}")
+        self.steps = frozenset(int(t) for t in chosen)
+        self._send = QosRequest(1.0, latency_steps)  # validates latency_steps
+        self._skip = QosRequest(0.0, latency_steps)
+        self.latency_steps = self._send.latency_steps
+        self._t = 0
+
+    def __repr__(self) -> str:
+        return f"ScheduledQos(steps={sorted(self.steps)!r}, latency_steps={self.latency_steps})"
+
+    def reset(self, *, seed: int | None = None) -> None:
+        self._t = 0
+
+    def request(self, observation: NDArray[np.float64], age: int) -> QosRequest:
+        t, self._t = self._t, self._t + 1
+        return self._send if t in self.steps else self._skip

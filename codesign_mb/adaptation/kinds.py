@@ -7,6 +7,7 @@ kind                 what
 ==================== =====================================================================
 ``static``           :class:`~codesign_mb.adaptation.base.StaticQos` (``options``)
 ``random``           :class:`~codesign_mb.adaptation.base.RandomQos`: ``q = 1`` w.p. ``probability``
+``schedule``         :class:`~codesign_mb.adaptation.base.ScheduledQos`: ``q = 1`` at fixed ``steps``
 ``age_rule``         :class:`~codesign_mb.adaptation.rules.AgeTriggeredQos`
 ``learned``          :class:`~codesign_mb.adaptation.learned.LearnedQosPolicy` (checkpoint folder)
 ``elapsed_time``     feature :class:`~codesign_mb.adaptation.learned.ElapsedTimeFeature` (``t/T``)
@@ -37,6 +38,7 @@ register(
     {
         "static": Kind("codesign_mb.adaptation.base:StaticQos"),
         "random": Kind("codesign_mb.adaptation.base:RandomQos"),
+        "schedule": Kind("codesign_mb.adaptation.base:ScheduledQos"),
         "age_rule": Kind("codesign_mb.adaptation.rules:AgeTriggeredQos"),
         "learned": Kind(
             "codesign_mb.adaptation.learned:LearnedQosPolicy.from_env",
