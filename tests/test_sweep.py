@@ -205,6 +205,7 @@ def ray_local() -> Iterator[None]:
         ray.shutdown()
 
 
+@pytest.mark.slow  # Ray's start and Tune: ~1 min each on 2 cores
 def test_local_and_ray_backends_identical(tmp_path: Path, ray_local: None) -> None:
     serial = run_sweep(_GRID, tmp_path / "serial", backend="serial").table
     local = run_sweep(_GRID, tmp_path / "local", backend="local", workers=2).table
@@ -220,6 +221,7 @@ def test_local_and_ray_backends_identical(tmp_path: Path, ray_local: None) -> No
     assert fast["predictor"] < fast["none"]
 
 
+@pytest.mark.slow  # Ray's start and Tune: ~1 min each on 2 cores
 def test_tune_hyperparameters(tmp_path: Path, ray_local: None) -> None:
     from ray import tune
 
