@@ -28,7 +28,7 @@ assembled from the rows as stored, in grid order, and written with
 
 Scenarios
 ---------
-A scenario is a module (registered in :data:`SCENARIOS`, or any importable module path)
+A scenario is a module (registered in :data:`SWEEP_MODULES`, or any importable module path)
 defining:
 
 ``run_trial(config: TrialConfig, seed: int) -> dict[str, scalar]``
@@ -88,7 +88,7 @@ from codesign_mb.studies.sweep_ray import iter_ray
 
 __all__ = [
     "GRID_COLUMNS",
-    "SCENARIOS",
+    "SWEEP_MODULES",
     "SweepConfig",
     "SweepResult",
     "TrialConfig",
@@ -100,7 +100,7 @@ __all__ = [
 Backend = Literal["serial", "local", "ray"]
 BACKENDS: tuple[str, ...] = ("serial", "local", "ray")
 
-SCENARIOS: dict[str, str] = {
+SWEEP_MODULES: dict[str, str] = {
     "linear": "codesign_mb.studies.sweep_linear",
     "conveyor": "codesign_mb.studies.sweep_conveyor",
     **{name: "codesign_mb.studies.sweep_conveyor" for name in CONVEYOR_SCENARIOS},
@@ -248,7 +248,7 @@ def _as_tuple(name: str, value: Any) -> tuple[Any, ...]:
 
 
 def _scenario_module_name(scenario: str) -> str:
-    return SCENARIOS.get(scenario, scenario)
+    return SWEEP_MODULES.get(scenario, scenario)
 
 
 def load_scenario(scenario: str) -> ModuleType:
@@ -259,12 +259,12 @@ def load_scenario(scenario: str) -> ModuleType:
     except ModuleNotFoundError as exc:
         if exc.name is None or not module_name.startswith(exc.name):
             raise  # a dependency missing inside an existing scenario module: a real bug
-        if scenario in SCENARIOS:
+        if scenario in SWEEP_MODULES:
             raise ValueError(
                 f"scenario {scenario!r} is not available: module {module_name!r} does not exist yet"
             ) from None
         raise ValueError(
-            f"unknown scenario {scenario!r}; expected one of {', '.join(SCENARIOS)} "
+            f"unknown scenario {scenario!r}; expected one of {', '.join(SWEEP_MODULES)} "
             "or an importable module path"
         ) from None
     missing = [a for a in ("run_trial", "Params", "PIPELINES") if not hasattr(module, a)]
