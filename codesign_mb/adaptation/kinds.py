@@ -7,7 +7,7 @@ kind                 what
 ==================== =====================================================================
 ``static``           :class:`~codesign_mb.adaptation.base.StaticQos` (``options``)
 ``random``           :class:`~codesign_mb.adaptation.base.RandomQos`: ``q = 1`` w.p. ``probability``
-``schedule``         :class:`~codesign_mb.adaptation.base.ScheduledQos`: ``q = 1`` at fixed ``steps``
+``schedule``         :class:`~codesign_mb.adaptation.base.ScheduledQos`: ``q = 1`` at ``steps``
 ``age_rule``         :class:`~codesign_mb.adaptation.rules.AgeTriggeredQos`
 ``learned``          :class:`~codesign_mb.adaptation.learned.LearnedQosPolicy` (checkpoint folder)
 ``elapsed_time``     feature :class:`~codesign_mb.adaptation.learned.ElapsedTimeFeature` (``t/T``)
