@@ -107,12 +107,12 @@ def trace_command(
 ) -> None:
     """Record a static-QoS traffic trace as an instance for ``codesign solve``.
 
-    The trace is recorded whole, then written (Parquet: one row group of ticks at a time, the
-    progress bar counting them).
+    Parquet is written as it is recorded (an hour of 48 robots in bounded memory); JSON is
+    recorded whole, so capped. The progress bar counts the ticks recorded.
     """
     from codesign_mb.studies.offline_lp import write_trace
 
-    with progress_bar("row groups", disable=as_json) as progress:
+    with progress_bar("ticks", disable=as_json) as progress:
         t = write_trace(
             out,
             channel=channel,
@@ -123,9 +123,9 @@ def trace_command(
             seed=seed,
             progress=progress,
         )
-    note(f"wrote {out} ({len(t.frames)} frames, {t.horizon_ticks} ticks)")
+    note(f"wrote {out} ({t.frames} frames, {t.horizon_ticks} ticks)")
     if as_json:
-        summary = {"instance": str(out), "robots": t.n_stations, "frames": len(t.frames)}
+        summary = {"instance": str(out), "robots": t.n_stations, "frames": t.frames}
         emit({**summary, "horizon_ticks": t.horizon_ticks}, as_json=True)
 
 

@@ -26,25 +26,29 @@ delivers, when that is less).
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 
 import numpy as np
 import pandas as pd
 from numpy.typing import ArrayLike, NDArray
 
+from codesign_mb.core.config import check_range
 from codesign_mb.network.link import ObservationBuffer, Packet, Reception
 from codesign_mb.network.qos import QosRequest
 from codesign_mb.wifi.config import WifiConfig, make_allocator
 from codesign_mb.wifi.engine import ChannelEngine, FallbackCount, Frame
-from codesign_mb.wifi.sim import Trace
+from codesign_mb.wifi.recorder import TraceChunk, TraceRecorder, TrafficOnlyEngine
+from codesign_mb.wifi.sim import TRACE_CELLS_CAP, Trace
 from codesign_mb.wifi.traffic import drop_probability
 
 __all__ = [
     "ChannelProcess",
     "SharedChannel",
+    "TraceChunk",
     "WifiLink",
     "generate_trace",
+    "record_trace",
 ]
 
 
@@ -90,29 +94,6 @@ class ChannelProcess:
         self.dl_mcs, self.dl_pdr = ch.adapt(self.dl_snr_db, self.dl_bytes)
         self.ul_bpss = phy.bits_per_subcarrier_symbol(self.ul_mcs)
         self.dl_bpss = phy.bits_per_subcarrier_symbol(self.dl_mcs)
-
-
-class _TraceRecorder:
-    def __init__(self) -> None:
-        self.ul: list[NDArray] = []
-        self.dl: list[NDArray] = []
-        self.frames: list[tuple[int, ...]] = []
-
-    def trace(self, config: WifiConfig, n: int) -> Trace:
-        cols = Trace.COLUMNS
-        table = (
-            pd.DataFrame(self.frames, columns=list(cols))
-            if self.frames
-            else pd.DataFrame({c: np.zeros(0, dtype=np.int64) for c in cols})
-        )
-        horizon = len(self.ul)
-        return Trace(
-            config=config,
-            horizon_ticks=horizon,
-            ul_bpss=np.stack(self.ul, axis=1) if horizon else np.zeros((n, 0)),
-            dl_bpss=np.stack(self.dl, axis=1) if horizon else np.zeros((n, 0)),
-            frames=table,
-        )
 
 
 @dataclass
@@ -209,7 +190,7 @@ class SharedChannel:
             make_allocator(self.config, self.n, self.scheduler),
             make_allocator(self.config, self.n, self.scheduler),
         )
-        self._recorder = _TraceRecorder()
+        self._recorder = TraceRecorder()
         self._stations = [
             _Station(np.random.default_rng(s), ObservationBuffer()) for s in self._drop_seeds
         ]
@@ -394,6 +375,43 @@ class WifiLink:
 # --------------------------------------------------------------------------- drivers
 
 
+def record_trace(
+    config: WifiConfig,
+    n_stations: int,
+    *,
+    steps: int,
+    reliability: float | Sequence[float] = 1.0,
+    latency_steps: int = 1,
+    seed: int = 0,
+    chunk_steps: int = 250,
+) -> Iterator[TraceChunk]:
+    """:func:`generate_trace`'s recording, ``chunk_steps`` control steps at a time.
+
+    Yields consecutive :class:`TraceChunk` s whose ticks and frames, put end to end, are
+    ``generate_trace``'s trace bit for bit whatever ``chunk_steps``: the chunks only cut the
+    same lockstep run (every random stream is drawn in the same order), and hold about
+    ``chunk_steps`` steps of channel and frames each, so a trace too long to hold (an hour of
+    48 robots) is written as it is recorded (``codesign wifi trace OUT.parquet``).
+    """
+    check_range("chunk_steps", chunk_steps, ge=1)
+    q = np.broadcast_to(np.asarray(reliability, dtype=float), (n_stations,))
+    channel = SharedChannel(config, n_stations, seed=seed, scheduler="greedy")
+    for link in channel.links:
+        link.reset(prior=np.zeros(1))
+    engine = channel.engine  # traffic only: no allocation needed to record a trace
+    channel.engine = TrafficOnlyEngine(config, n_stations, engine.ul_allocator, engine.dl_allocator)
+    for first in range(0, steps, chunk_steps):
+        for _ in range(first, min(first + chunk_steps, steps)):
+            for i in channel.step_order:
+                channel._submit(i, np.zeros(1), QosRequest(float(q[i]), latency_steps))
+        channel._frames.clear()  # the recorder has them; the engine queues nothing
+        yield channel._recorder.take(n_stations)
+    for i in range(n_stations):
+        channel.close(i)
+    channel._advance_to((steps + latency_steps) * channel.period_ticks, -1)
+    yield channel._recorder.take(n_stations)
+
+
 def generate_trace(
     config: WifiConfig,
     n_stations: int,
@@ -407,30 +425,27 @@ def generate_trace(
 
     Every robot requests ``reliability`` (one value or one per station) and ``latency_steps``;
     frames are admitted by ``eq_drop`` and the channel runs ``latency_steps`` steps past the
-    last capture so every deadline falls inside the horizon.
+    last capture so every deadline falls inside the horizon. The trace is held whole, so its
+    size is capped (:data:`~codesign_mb.wifi.sim.TRACE_CELLS_CAP`); :func:`record_trace` gives
+    the same recording in parts.
     """
-    q = np.broadcast_to(np.asarray(reliability, dtype=float), (n_stations,))
-    channel = SharedChannel(config, n_stations, seed=seed, scheduler="greedy")
-    for link in channel.links:
-        link.reset(prior=np.zeros(1))
-    engine = channel.engine  # traffic only: no allocation needed to record a trace
-    channel.engine = _TrafficOnlyEngine(
-        config, n_stations, engine.ul_allocator, engine.dl_allocator
+    ticks = (steps + latency_steps) * config.traffic.period_ticks(config.mac.tick_us)
+    check_range("robots x ticks of the trace", n_stations * ticks, cap=TRACE_CELLS_CAP)
+    chunks = list(
+        record_trace(
+            config,
+            n_stations,
+            steps=steps,
+            reliability=reliability,
+            latency_steps=latency_steps,
+            seed=seed,
+            chunk_steps=max(steps, 1),
+        )
     )
-    for _ in range(steps):
-        for i in channel.step_order:
-            channel._submit(i, np.zeros(1), QosRequest(float(q[i]), latency_steps))
-    for i in range(n_stations):
-        channel.close(i)
-    channel._advance_to(steps * channel.period_ticks + latency_steps * channel.period_ticks, -1)
-    return channel.trace()
-
-
-class _TrafficOnlyEngine(ChannelEngine):
-    """A :class:`ChannelEngine` whose clock runs but that queues and serves nothing."""
-
-    def add(self, frame: Frame) -> None:
-        return None
-
-    def run_tick(self, ul_bpss: NDArray, dl_bpss: NDArray) -> None:
-        self.tick += 1
+    return Trace(
+        config=config,
+        horizon_ticks=sum(c.ul_bpss.shape[1] for c in chunks),
+        ul_bpss=np.concatenate([c.ul_bpss for c in chunks], axis=1),
+        dl_bpss=np.concatenate([c.dl_bpss for c in chunks], axis=1),
+        frames=pd.concat([c.frames for c in chunks], ignore_index=True),
+    )

@@ -18,6 +18,7 @@ solvers, which take bounds as constraints.
 from __future__ import annotations
 
 import ctypes
+import math
 import os
 import sys
 from dataclasses import dataclass
@@ -77,6 +78,12 @@ def solve_box_lp(
     return _osqp(c, A, b)
 
 
+def _objective(c: NDArray, x: NDArray) -> float:
+    """``c'x`` exactly rounded (``math.fsum``): the same bits in every process, whatever the
+    BLAS threads of its dot product (a Ray worker runs single-threaded, a plain process not)."""
+    return math.fsum((c * x).tolist())
+
+
 _BANNER_SHOWN = False
 
 
@@ -124,7 +131,7 @@ def _highs(c: NDArray, A: sp.csc_matrix, b: NDArray) -> LpSolution:
     sol = h.getSolution()
     x = np.asarray(sol.col_value)
     duals = -np.asarray(sol.row_dual)  # of the minimisation of -c'x: <= rows have duals <= 0
-    return LpSolution(float(c @ x), "optimal", "highs", x, duals)
+    return LpSolution(_objective(c, x), "optimal", "highs", x, duals)
 
 
 def _clarabel(c: NDArray, A: sp.csc_matrix, b: NDArray, bounded: NDArray | None) -> LpSolution:
@@ -145,7 +152,7 @@ def _clarabel(c: NDArray, A: sp.csc_matrix, b: NDArray, bounded: NDArray | None)
     if "Solved" not in status:
         return LpSolution(float("nan"), f"clarabel: {status}", "clarabel")
     x = np.clip(np.asarray(sol.x), 0.0, 1.0)
-    return LpSolution(float(c @ x), "optimal", "clarabel", x, np.asarray(sol.z)[:m])
+    return LpSolution(_objective(c, x), "optimal", "clarabel", x, np.asarray(sol.z)[:m])
 
 
 def _osqp(c: NDArray, A: sp.csc_matrix, b: NDArray) -> LpSolution:
@@ -172,4 +179,4 @@ def _osqp(c: NDArray, A: sp.csc_matrix, b: NDArray) -> LpSolution:
     status = str(res.info.status)
     if res.x is None or not np.all(np.isfinite(res.x)):
         return LpSolution(float("nan"), f"osqp: {status}", "osqp")
-    return LpSolution(float(c @ res.x), status, "osqp", np.asarray(res.x), None)
+    return LpSolution(_objective(c, res.x), status, "osqp", np.asarray(res.x), None)

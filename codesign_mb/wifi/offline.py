@@ -104,6 +104,11 @@ class OfflineResult:
     """The trace's frame-table rows the LP holds (frames both hops deliver, in time)."""
     delivered: NDArray[np.float64] = field(default_factory=lambda: np.zeros(0))
     """Per LP frame (``frame_rows``), the fraction the optimum delivers in time (``V_f``)."""
+    ul_price: NDArray[np.float64] | None = None
+    """Per tick, the dual price of its UL capacity row (:class:`AirtimePrices`); ``None``
+    when the solver gave no duals."""
+    dl_price: NDArray[np.float64] | None = None
+    """Per tick, the dual price of its DL capacity row."""
 
 
 def _ranges(lengths: NDArray[np.int64]) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
@@ -276,6 +281,7 @@ def offline_optimum(trace: Trace, *, solver: str = "auto") -> OfflineResult:
         if sol.x is not None
         else np.full(lp.n_frames, np.nan)
     )
+    prices = _tick_prices(lp, sol.row_duals, trace.horizon_ticks)
     return OfflineResult(
         optimum=sol.value,
         solver=sol.solver,
@@ -288,7 +294,21 @@ def offline_optimum(trace: Trace, *, solver: str = "auto") -> OfflineResult:
         build_time_s=built - start,
         frame_rows=lp.frame_rows,
         delivered=delivered,
+        ul_price=None if prices is None else prices[0],
+        dl_price=None if prices is None else prices[1],
     )
+
+
+def _tick_prices(
+    lp: OfflineLp, duals: NDArray[np.float64] | None, horizon: int
+) -> tuple[NDArray[np.float64], NDArray[np.float64]] | None:
+    """Per tick, the duals of its UL and DL capacity rows (0 for a tick without a row)."""
+    if duals is None:
+        return None
+    ul, dl = np.zeros(horizon), np.zeros(horizon)
+    ul[lp.ul_ticks] = duals[lp.ul_rows]
+    dl[lp.dl_ticks] = duals[lp.dl_rows]
+    return ul, dl
 
 
 @dataclass(frozen=True)
@@ -330,11 +350,11 @@ def airtime_prices(trace: Trace) -> AirtimePrices:
         frames = frames.assign(delivered=0.0, ul_work=0.0, ul_bill=0.0)
         return AirtimePrices(0.0, ticks, frames)
     sol = solve_box_lp(lp.c, lp.A, lp.b, solver="highs")
-    if sol.x is None or sol.row_duals is None:
+    # the duals are the prices of the "<=" rows of the max problem
+    prices = _tick_prices(lp, sol.row_duals, horizon)
+    if sol.x is None or prices is None:
         raise ValueError(f"the offline LP could not be solved: {sol.status}")
-    duals = sol.row_duals  # prices of the "<=" rows of the max problem
-    ticks.loc[lp.ul_ticks, "ul_price"] = duals[lp.ul_rows]
-    ticks.loc[lp.dl_ticks, "dl_price"] = duals[lp.dl_rows]
+    ticks["ul_price"], ticks["dl_price"] = prices
     cfg = trace.config
     mac, phy = cfg.mac, cfg.phy
     p = cfg.traffic.processing_ticks(mac.tick_us)

@@ -172,7 +172,8 @@ class WindowedResult:
 
     ``windows``: one row per window (``first_tick``, ``end_tick``, ``frames``, ``variables``,
     ``constraints``, ``optimum``, ``solver``, ``status``, ``build_time_s``, ``solve_time_s``,
-    ``resumed``: read from the journal); ``stations``: the optimum's frames per robot.
+    the airtime prices of :func:`solve_window`, ``resumed``: read from the journal);
+    ``stations``: the optimum's frames per robot.
     """
 
     optimum: float
@@ -189,8 +190,16 @@ class WindowedResult:
         return int(self.windows["variables"].sum())
 
 
+PRICED = 1e-7
+"""A tick whose UL or DL capacity row has a dual price above this is counted as priced
+(airtime there is scarce; the interior point leaves prices of about 1e-9 on free ticks)."""
+
+
 def solve_window(trace: Trace | PendingWindow, solver: str) -> dict[str, Any]:
-    """One window's optimum, timings and frames delivered per station (a picklable task)."""
+    """One window's optimum, timings, frames delivered per station and airtime prices (the
+    sums and maximum over its ticks of the duals of :class:`~codesign_mb.wifi.offline.
+    AirtimePrices`, the ticks priced above :data:`PRICED`; NaN without duals): a picklable
+    task."""
     if isinstance(trace, PendingWindow):
         trace = trace.load()
     r = offline_optimum(trace, solver=solver)
@@ -198,6 +207,7 @@ def solve_window(trace: Trace | PendingWindow, solver: str) -> dict[str, Any]:
     per_station = np.bincount(
         stations.astype(np.int64), weights=r.delivered, minlength=trace.n_stations
     )
+    ul, dl = (np.full(1, np.nan) if p is None else p for p in (r.ul_price, r.dl_price))
     return {
         "frames": r.n_frames,
         "variables": r.n_variables,
@@ -207,6 +217,10 @@ def solve_window(trace: Trace | PendingWindow, solver: str) -> dict[str, Any]:
         "status": r.status,
         "build_time_s": r.build_time_s,
         "solve_time_s": r.solve_time_s,
+        "ul_price_sum": float(ul.sum()),
+        "dl_price_sum": float(dl.sum()),
+        "ul_price_max": float(ul.max()) if ul.size else 0.0,
+        "priced_ticks": int(((ul > PRICED) | (dl > PRICED)).sum()),
         "stations": per_station.tolist(),
     }
 

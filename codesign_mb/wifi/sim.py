@@ -13,7 +13,7 @@ import json
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import pandas as pd
@@ -34,7 +34,11 @@ from codesign_mb.wifi.allocators import Allocator
 from codesign_mb.wifi.config import WifiConfig, make_allocator
 from codesign_mb.wifi.engine import ChannelEngine, FallbackCount, Frame
 
+if TYPE_CHECKING:
+    from codesign_mb.wifi.offline_windows import TraceSource
+
 __all__ = [
+    "REPLAY_CHUNK_TICKS",
     "TRACE_CELLS_CAP",
     "TRACE_FORMAT",
     "ReplayResult",
@@ -45,6 +49,8 @@ __all__ = [
 ]
 
 TRACE_FORMAT = "codesign-wifi-trace/1"
+REPLAY_CHUNK_TICKS = 10_000
+"""Ticks of channel :func:`replay` reads at a time from a trace's source (10 s)."""
 
 
 @dataclass(frozen=True)
@@ -269,7 +275,7 @@ class ReplayResult:
 
 
 def replay(
-    trace: Trace,
+    trace: Trace | TraceSource,
     allocator: str | tuple[Allocator, Allocator],
     *,
     record_layouts: bool = False,
@@ -279,10 +285,12 @@ def replay(
     Parameters
     ----------
     trace:
-        The trace.
+        The trace: in memory, or any source of its channel by tick range (a Parquet trace,
+        :class:`~codesign_mb.wifi.trace_parquet.ParquetTrace`, is read
+        :data:`REPLAY_CHUNK_TICKS` ticks at a time; the same result bit for bit).
     allocator:
-        A scheduler name (``"greedy"``, ``"convex"``, ``"convex-cvxpy"``) or a
-        ``(ul_allocator, dl_allocator)`` pair.
+        A scheduler name (``"greedy"``, ``"convex"``, ``"convex-cvxpy"``, ``"tick-optimal"``)
+        or a ``(ul_allocator, dl_allocator)`` pair.
     record_layouts:
         Keep every tick's layout (for validity tests).
     """
@@ -298,31 +306,26 @@ def replay(
     if record_layouts:
         engine.layouts = []
     order = trace.frames.sort_values(["capture_tick", "station"], kind="stable")
-    rows = order.to_dict("records")
+    columns = [order[c].to_numpy(dtype=np.int64).tolist() for c in Trace.COLUMNS]
     frames: list[Frame] = []
     j = 0
-    for k in range(trace.horizon_ticks):
-        while j < len(rows) and rows[j]["capture_tick"] <= k:
-            r = rows[j]
-            f = Frame(
-                int(r["station"]),
-                int(r["step"]),
-                int(r["capture_tick"]),
-                int(r["deadline_tick"]),
-                int(r["ul_bits"]),
-                int(r["dl_bits"]),
-                bool(r["ul_ok"]),
-                bool(r["dl_ok"]),
-            )
-            engine.add(f)
-            frames.append(f)
-            j += 1
-        engine.run_tick(trace.ul_bpss[:, k], trace.dl_bpss[:, k])
+    for lo in range(0, trace.horizon_ticks, REPLAY_CHUNK_TICKS):
+        hi = min(lo + REPLAY_CHUNK_TICKS, trace.horizon_ticks)
+        ul_bpss, dl_bpss = trace.channel(lo, hi)
+        for k in range(lo, hi):
+            while j < len(order) and columns[2][j] <= k:
+                station, step, cap, dead, ul_bits, dl_bits, ul_ok, dl_ok = (c[j] for c in columns)
+                f = Frame(station, step, cap, dead, ul_bits, dl_bits, bool(ul_ok), bool(dl_ok))
+                engine.add(f)
+                frames.append(f)
+                j += 1
+            engine.run_tick(ul_bpss[:, k - lo], dl_bpss[:, k - lo])
     engine.flush()
     fates = pd.DataFrame(
         {
             "station": [f.station for f in frames],
             "step": [f.step for f in frames],
+            "capture_tick": [f.capture_tick for f in frames],
             "fate": [f.fate for f in frames],
             "delivered_tick": [f.delivered_tick for f in frames],
         }

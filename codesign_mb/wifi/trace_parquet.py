@@ -144,6 +144,8 @@ class TraceWriter:
         self._dl: list[NDArray[np.float64]] = []
         self._ticks = 0  # ticks written to row groups
         self._pending = 0  # ticks buffered
+        self._frames: list[dict[str, NDArray[np.int64]]] = []
+        self._pending_frames = 0
 
     def __enter__(self) -> TraceWriter:
         return self
@@ -191,11 +193,18 @@ class TraceWriter:
         self._write("channel", columns, k)
 
     def add_frames(self, frames: pd.DataFrame) -> None:
-        """Append admitted frames (the columns of :attr:`Trace.COLUMNS`), in order."""
-        for lo in range(0, len(frames), FRAMES_PER_GROUP):
-            part = frames.iloc[lo : lo + FRAMES_PER_GROUP]
-            columns = {c: pa.array(part[c].to_numpy(dtype=np.int64)) for c in Trace.COLUMNS}
-            self._write("frames", columns, len(part))
+        """Append admitted frames (the columns of :attr:`Trace.COLUMNS`), in order; full row
+        groups of frames are written at once."""
+        self._frames.append({c: frames[c].to_numpy(dtype=np.int64) for c in Trace.COLUMNS})
+        self._pending_frames += len(frames)
+        while self._pending_frames >= FRAMES_PER_GROUP:
+            self._flush_frames(FRAMES_PER_GROUP)
+
+    def _flush_frames(self, k: int) -> None:
+        table = {c: np.concatenate([part[c] for part in self._frames]) for c in Trace.COLUMNS}
+        self._frames = [{c: v[k:] for c, v in table.items()}]
+        self._pending_frames -= k
+        self._write("frames", {c: pa.array(v[:k]) for c, v in table.items()}, k)
 
     def _write(self, kind: str, columns: dict[str, pa.Array], rows: int) -> None:
         full = {
@@ -209,6 +218,8 @@ class TraceWriter:
         """Write the last row groups and the header; the file is then at its path."""
         if self._pending:
             self._flush_ticks(self._pending)
+        if self._pending_frames:
+            self._flush_frames(self._pending_frames)
         if self._ticks != self.header.horizon_ticks:
             raise ValueError(
                 f"the trace has {self._ticks} ticks, not horizon_ticks = "
