@@ -159,7 +159,11 @@ def test_cli_smoke_runs_every_study_then_renders_readme(runner: CliRunner, tmp_p
     block = read_block(text)
     assert "`codesign demo --scenario lqg -n 2 --horizon 40 --seed 0`" in block
     for name in ("realistic", "variable"):
-        assert f"`codesign table --scenario {name} --pipeline model-based -n 1 --seed 0`" in block
+        assert (
+            f"`codesign table --scenario {name} --pipeline model-based -n 1 --seed 0 "
+            "--bound 'MPC + belt IMM, QoS planner (co-design)'`"
+        ) in block
+        assert "*clairvoyant schedule of: MPC + belt IMM, QoS planner (co-design)*" in block
     assert "![fig_pareto_paper](docs/figures/fig_pareto_paper.png)" in block
     check = runner.invoke(app, ["readme", "--readme", str(readme), "--docs", str(docs), "--check"])
     assert check.exit_code == 0, check.output

@@ -176,8 +176,9 @@ def test_renderer_on_a_constructed_results_folder(constructed: Path, tmp_path: P
     assert "| *MPC + predictor, blind (q = 0)* | 6 % [2.8, 12.5] | 0 % | 0 % |" in lines
     assert "| SAC + MLP, SAC QoS | not run: missing checkpoint: checkpoints/x |  |  |" in lines
     assert (
-        "(`codesign table --scenario realistic --pipeline model-based -n 200 --seed 0`, `test` "
-        "seed set, 200 episodes per row)"
+        "(`codesign table --scenario realistic --pipeline model-based -n 200 --seed 0 "
+        "--bound 'MPC + belt IMM, QoS planner (co-design)'`, `test` seed set, 200 episodes "
+        "per row)"
     ) in block
     # the linear baseline
     assert "| q | 1 | 0.5 |" in lines and "| mean LQG cost | 5.79 | 10.32 |" in lines

@@ -140,6 +140,19 @@ def table_command(
             ),
         ),
     ] = None,
+    bound: Annotated[
+        list[str] | None,
+        typer.Option(
+            "--bound",
+            help=(
+                "A co-design row (its name; repeatable) that gets a clairvoyant-schedule row: "
+                "each of its episodes replayed with the fewest of its own requests that still "
+                "succeed (an upper bound on the packets the episode needs; a few replays each). "
+                "\\[default: none]"
+            ),
+            show_default=False,
+        ),
+    ] = None,
     out: OutOption = Path("results/table"),
     fresh: FreshOption = False,
     as_json: JsonOption = False,
@@ -163,6 +176,7 @@ def table_command(
                 "workers": workers,
                 "on_missing": on_missing,
                 "references": references,
+                "bound": tuple(bound) if bound else None,
             },
             rename={"plant": "plants"},
         ),

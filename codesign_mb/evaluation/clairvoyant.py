@@ -20,17 +20,16 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Hashable, Iterator, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, TypeVar
 
 from numpy.typing import NDArray
 
 from codesign_mb.adaptation.base import ScheduledQos
 from codesign_mb.core.registry import ComponentSpec, PlantSpec, build, make_plant
-from codesign_mb.evaluation.metrics import episode_row
+from codesign_mb.evaluation.evaluate import episode_record
 from codesign_mb.evaluation.pool import imap
 from codesign_mb.network import BernoulliLink, LinkObservationWrapper, QosRequest
-from codesign_mb.rollout import rollout
 
 __all__ = ["ClairvoyantEpisode", "clairvoyant_episode", "clairvoyant_episodes", "minimal_subset"]
 
@@ -106,6 +105,10 @@ class ClairvoyantEpisode:
     requested: float
     """The clairvoyant schedule's mean requested reliability (NaN when there is none)."""
     replays: int
+    episode: dict[str, Any] = field(default_factory=dict, compare=False)
+    """The clairvoyant schedule's episode row
+    (:func:`~codesign_mb.evaluation.evaluate.episode_record`; the policy's own where no
+    schedule succeeds): what a table's ``bound`` row is made of."""
 
 
 def clairvoyant_episode(
@@ -125,7 +128,7 @@ def clairvoyant_episode(
 
     def episode(policy: Any) -> dict[str, Any]:
         wrapped = LinkObservationWrapper(env, BernoulliLink(), policy)
-        return episode_row(rollout(wrapped, built_estimator, built_controller, seed=seed))
+        return episode_record(wrapped, built_estimator, built_controller, seed)
 
     def replay(steps: tuple[int, ...]) -> dict[str, Any]:
         key = frozenset(steps)
@@ -143,6 +146,7 @@ def clairvoyant_episode(
         every = tuple(range(int(row["steps"])))  # static QoS: a request at every step
         if every and replay(every)["success"]:
             start, steps = "static", every
+    found = row
     if steps is not None:
         steps, _ = minimal_subset(steps, lambda s: bool(replay(s)["success"]))
         found = replay(steps)
@@ -156,6 +160,7 @@ def clairvoyant_episode(
         success=steps is not None and bool(found["success"]),
         requested=float(found["mean_requested_reliability"]) if steps is not None else math.nan,
         replays=len(replays),
+        episode=found,
     )
 
 

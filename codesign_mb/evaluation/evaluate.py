@@ -55,6 +55,7 @@ from codesign_mb.rollout import rollout
 __all__ = [
     "TIMING_COLUMNS",
     "EvaluateConfig",
+    "episode_record",
     "episode_row",
     "evaluate",
     "iter_episodes",
@@ -132,18 +133,37 @@ class _Runner:
         self.max_steps = job.max_steps
 
     def run(self, episode: int, seed: int) -> dict[str, Any]:
-        start = time.perf_counter()
-        steps = rollout(
-            self.env, self.estimator, self.controller, seed=seed, max_steps=self.max_steps
+        return episode_record(
+            self.env,
+            self.estimator,
+            self.controller,
+            seed,
+            episode=episode,
+            max_steps=self.max_steps,
         )
-        row: dict[str, Any] = {"episode": episode, "seed": seed}
-        row.update(episode_row(steps))
-        for obj in (self.controller, self.estimator, self.env.qos_policy):
-            metrics = getattr(obj, "episode_metrics", None)
-            if callable(metrics):
-                row.update(metrics())
-        row["wall_time_s"] = time.perf_counter() - start
-        return row
+
+
+def episode_record(
+    env: LinkObservationWrapper,
+    estimator: Any,
+    controller: Any,
+    seed: int,
+    *,
+    episode: int = 0,
+    max_steps: int | None = None,
+) -> dict[str, Any]:
+    """One episode's row of an evaluation: :func:`episode_row`, each component's
+    ``episode_metrics()`` (phase errors, CPU time) and the wall time."""
+    start = time.perf_counter()
+    steps = rollout(env, estimator, controller, seed=seed, max_steps=max_steps)
+    row: dict[str, Any] = {"episode": episode, "seed": seed}
+    row.update(episode_row(steps))
+    for obj in (controller, estimator, env.qos_policy):
+        metrics = getattr(obj, "episode_metrics", None)
+        if callable(metrics):
+            row.update(metrics())
+    row["wall_time_s"] = time.perf_counter() - start
+    return row
 
 
 _RUNNERS: dict[int, _Runner] = {}

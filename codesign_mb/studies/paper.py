@@ -97,6 +97,7 @@ def _run_table(
         trials=settings["trials"],
         seed=settings["seed"],
         seeds=tuple(settings.get("root_seeds", ())),
+        bound=tuple(settings.get("bound", ())),
         workers=workers,
     )
     run_table_study(cfg, out, progress=progress, command=study_command(name, settings))

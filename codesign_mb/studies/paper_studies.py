@@ -15,7 +15,8 @@ own subfolder of the results folder ``OUT``:
 ``table_realistic/``, ``table_variable/``
     :func:`~codesign_mb.studies.table_figures.run_table_study` with the model-based rows and
     their reference rows on that scenario (``codesign table --scenario NAME --pipeline
-    model-based``): ``tab_p``, ``tab_p_episodes``, ``tab_p.md``, ``fig_pareto.png``, Fig. 5.
+    model-based``): ``tab_p``, ``tab_p_episodes``, ``tab_p.md``, ``fig_pareto.png``, Fig. 5;
+    the QoS planner's row also gets its clairvoyant-schedule ``bound`` row (:data:`BOUND_ROWS`).
 ``table_model_free/``
     The paper's Table I (``--scenario paper --pipeline model-free``): its learned rows and their
     references, pooled over three evaluation seeds (:data:`POOLED_SEEDS`; ``--seeds``).
@@ -35,6 +36,7 @@ own subfolder of the results folder ``OUT``:
 
 from __future__ import annotations
 
+import shlex
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
@@ -42,8 +44,10 @@ from typing import Any
 from codesign_mb.core.config import EPISODES_CAP, WORKERS_CAP, check_range
 from codesign_mb.core.results import to_jsonable
 from codesign_mb.core.seeds import seed_set
+from codesign_mb.studies.table_rows import PLANNER_ROW
 
 __all__ = [
+    "BOUND_ROWS",
     "FIG_WIFI_GRID",
     "POOLED_SEEDS",
     "STUDIES",
@@ -64,6 +68,13 @@ TABLE_STUDIES: dict[str, tuple[str, str]] = {
 """Table study -> (scenario, pipeline). The learned rows' checkpoints are the paper scenario's,
 but for ``table_learned_*``'s (the learned stack trained on ``realistic``, issue 30; on
 ``variable`` it meets belts it was not trained on)."""
+
+BOUND_ROWS: dict[str, tuple[str, ...]] = {
+    "table_realistic": (PLANNER_ROW,),
+    "table_variable": (PLANNER_ROW,),
+}
+"""Table study -> the co-design rows that get a clairvoyant-schedule ``bound`` row
+(:mod:`~codesign_mb.studies.table_bound`; issue 34): the benchmarks' best co-design."""
 
 POOLED_SEEDS: dict[str, int] = {"table_model_free": 3}
 """Table study -> how many evaluation root seeds it pools (the set's root and the next ones):
@@ -200,6 +211,8 @@ def study_settings(name: str, config: PaperConfig) -> dict[str, Any]:
         settings.update(_SMOKE["table"] if smoke else {}, seed=seed)
         if name in POOLED_SEEDS:
             settings["root_seeds"] = [seed + k for k in range(POOLED_SEEDS[name])]
+        if name in BOUND_ROWS:
+            settings["bound"] = list(BOUND_ROWS[name])
     elif name == "fig_cn":
         settings = {"trials": config.fig_cn_trials, "seed": seed}
         settings.update(_SMOKE["fig_cn"] if smoke else {})
@@ -220,9 +233,10 @@ def study_command(name: str, settings: Mapping[str, Any]) -> str:
     if name in TABLE_STUDIES:
         if s.get("root_seeds"):
             seed = "--seeds " + ",".join(str(k) for k in s["root_seeds"])
+        bound = "".join(f" --bound {shlex.quote(row)}" for row in s.get("bound", ()))
         return (
             f"codesign table --scenario {s['scenario']} --pipeline {s['pipeline']} "
-            f"-n {s['trials']} {seed}"
+            f"-n {s['trials']} {seed}{bound}"
         )
     if name == "fig_cn":
         grid = "".join(f" --delay {d}" for d in s.get("delays", ()))

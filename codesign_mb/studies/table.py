@@ -14,6 +14,8 @@ Every table of a pipeline's default rows also gets its reference rows
 the table, and ``random`` for each co-design row (any QoS policy but ``static``): the same
 stack sending each packet with probability ``p``, that row's measured mean requested
 reliability on the same plant. The ``random`` rows run in a second pool, after the others.
+Co-design rows named in ``TableConfig.bound`` also get a ``bound`` row, the clairvoyant
+schedule of each of their episodes (:mod:`~codesign_mb.studies.table_bound`).
 
 Columns of the summary (one row per table row and plant):
 
@@ -90,6 +92,7 @@ from codesign_mb.core.records import RecordStore
 from codesign_mb.core.registry import ComponentSpec, PlantSpec, plant_factory
 from codesign_mb.evaluation.evaluate import rows_to_table, run_jobs
 from codesign_mb.plants.scenarios import SCENARIOS, get_scenario, scenario_options
+from codesign_mb.studies.table_bound import bound_cells
 from codesign_mb.studies.table_cost import (
     TrainingCost,
     incompatible_checkpoints,
@@ -101,6 +104,7 @@ from codesign_mb.studies.table_records import missing_record, record
 from codesign_mb.studies.table_refs import (
     ROW_KIND,
     Reference,
+    bound_name,
     cell_key,
     fixed_references,
     random_name,
@@ -164,6 +168,10 @@ class TableConfig:
         Whether to add the reference rows (:mod:`~codesign_mb.studies.table_refs`: ``blind``,
         ``oracle``, ``static`` per stack, ``random`` per co-design row); ``None``: for a
         pipeline's default rows, not for ``rows`` given explicitly.
+    bound:
+        Co-design rows (names) that get a ``bound`` reference: the clairvoyant schedule of
+        each of their episodes (:mod:`~codesign_mb.studies.table_bound`); a few replays an
+        episode, so opt-in.
     """
 
     plants: tuple[TablePlant | str, ...] = ()
@@ -179,6 +187,7 @@ class TableConfig:
     best_min_success: float = 0.98
     on_missing: str = "skip"
     references: bool | None = None
+    bound: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         if self.pipeline not in PIPELINES:
@@ -218,6 +227,8 @@ class TableConfig:
         if self.with_references():
             names += [ref.row.name for ref in fixed_references(self.table_rows())]
             names += [random_name(r) for r in random_sources(self.table_rows())]
+        object.__setattr__(self, "bound", _bound_names(self.bound, self.table_rows()))
+        names += [bound_name(r) for r in self.table_rows() if r.name in self.bound]
         if len(set(names)) != len(names):
             raise ValueError(f"row names must be unique, got {names}")
         if self.timeline_row and self.timeline_row not in own:
@@ -245,6 +256,20 @@ class TableConfig:
         if self.plants:
             return self.plants  # type: ignore[return-value]  # normalised in __post_init__
         return tuple(_plant(k, i) for i, k in enumerate(PIPELINE_PLANTS[self.pipeline]))
+
+
+def _bound_names(value: Any, rows: tuple[TableRow, ...]) -> tuple[str, ...]:
+    """``bound`` checked: distinct names of co-design rows (not static QoS)."""
+    if isinstance(value, str) or not all(isinstance(v, str) for v in value):
+        raise ValueError(f"bound must be a list of row names, got {value!r}")
+    names = tuple(value)
+    codesign = [r.name for r in random_sources(rows)]
+    unknown = [n for n in names if n not in codesign]
+    if unknown:
+        raise ValueError(f"bound must name co-design rows among {codesign}, got {unknown!r}")
+    if len(set(names)) != len(names):
+        raise ValueError(f"bound must name distinct rows, got {names!r}")
+    return names
 
 
 def _plant(value: Any, index: int) -> TablePlant:
@@ -311,6 +336,18 @@ def run_table(
     if config.with_references():
         randoms = _random_references(rows, plants, tables, per_plant, why)
         tables.update(_run_cells(randoms, config, progress, "random reference episodes", store))
+    tables.update(
+        bound_cells(
+            config.bound,
+            plants,
+            per_plant,
+            why,
+            trials=config.trials,
+            root_seeds=config.root_seeds(),
+            workers=config.workers,
+            progress=progress,
+        )
+    )
     costs: dict[str, TrainingCost] = {}
     summaries, episodes = [], []
     for plant in plants:

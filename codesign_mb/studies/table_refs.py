@@ -37,6 +37,8 @@ __all__ = [
     "REFERENCE_KINDS",
     "ROW_KIND",
     "Reference",
+    "bound_name",
+    "bound_reference",
     "cell_key",
     "draw_references",
     "fixed_references",
@@ -51,7 +53,7 @@ __all__ = [
 ROW_KIND = "row"
 """The ``kind`` of a table's own rows."""
 
-REFERENCE_KINDS: tuple[str, ...] = ("blind", "oracle", "static", "random")
+REFERENCE_KINDS: tuple[str, ...] = ("blind", "oracle", "static", "random", "bound")
 """The ``kind`` of the reference rows, in the order a table lists them."""
 
 _FIXED_QOS: dict[str, tuple[str, dict[str, float | int]]] = {
@@ -170,13 +172,27 @@ def random_reference(row: TableRow, probability: float, latency_steps: float) ->
     )
 
 
+def bound_name(row: TableRow) -> str:
+    """The name of ``row``'s ``bound`` reference."""
+    return f"clairvoyant schedule of: {row.name}"
+
+
+def bound_reference(row: TableRow) -> Reference:
+    """``row``'s ``bound`` reference: per episode, the 1-minimal clairvoyant schedule found
+    from ``row``'s own requests (:mod:`~codesign_mb.evaluation.clairvoyant`), on its stack."""
+    return Reference(
+        TableRow(bound_name(row), row.controller, row.estimator, row.qos), "bound", of=row.name
+    )
+
+
 # -- how the Pareto figure draws them (table_pareto_plot.plot_pareto) --------------------------
-_MARKERS = {"blind": "v", "oracle": "*", "static": "D", "random": "X"}
+_MARKERS = {"blind": "v", "oracle": "*", "static": "D", "random": "X", "bound": "<"}
 _LABELS = {
     "blind": "blind (q = 0)",
     "oracle": "oracle (q = 1, τ = 0)",
     "static": "static (q = 1, τ = 1)",
     "random": "random (a co-design row's PDR)",
+    "bound": "clairvoyant schedule (a co-design row's episodes)",
 }
 _STACK_GREYS = ("dimgray", "darkgray", "black", "silver")
 
