@@ -239,7 +239,14 @@ def table_section(study: Study, figures_url: str) -> str:
         )
         + "). Reference rows "
         "in italics: blind (q = 0), oracle (q = 1, tau = 0), static (q = 1, tau = 1), random (each "
-        "packet sent with the named row's average requested reliability):"
+        "packet sent with the named row's average requested reliability)"
+        + (
+            ", clairvoyant schedule (each episode of the named row replayed with the fewest of "
+            "its requests that still succeed; an upper bound on the packets the episode needs)"
+            if settings.get("bound")
+            else ""
+        )
+        + ":"
     )
     explain = explain_table(rows) if settings["pipeline"] == "model-based" else ""
     return _paragraphs(title, markdown_table(head, lines), explain, _figures(study, figures_url))

@@ -186,7 +186,7 @@ def bound_reference(row: TableRow) -> Reference:
 
 
 # -- how the Pareto figure draws them (table_pareto_plot.plot_pareto) --------------------------
-_MARKERS = {"blind": "v", "oracle": "*", "static": "D", "random": "X", "bound": "<"}
+_MARKERS = {"blind": "v", "oracle": "*", "static": "D", "random": "X", "bound": "H"}
 _LABELS = {
     "blind": "blind (q = 0)",
     "oracle": "oracle (q = 1, τ = 0)",
