@@ -109,7 +109,7 @@ def test_wifi_trace_writes_parquet_as_it_records(tmp_path: Path, monkeypatch: py
     """Row groups are on disk before the recording ends, the in-memory recorder is never
     called, and the file is the in-memory trace bit for bit."""
     monkeypatch.setattr(offline_lp, "CHUNK_STEPS", 10)
-    monkeypatch.setattr(offline_lp, "generate_trace", None)  # would fail if called
+    monkeypatch.setattr(offline_lp, "join_chunks", None)  # would fail if called
     written_before: list[int] = []
     real = TraceWriter.add_ticks
 

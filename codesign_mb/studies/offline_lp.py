@@ -29,7 +29,7 @@ from codesign_mb.core.config import (
 from codesign_mb.evaluation.pool import check_workers, imap
 from codesign_mb.network.qos import QosRequest
 from codesign_mb.studies.fig_wifi import CHANNEL_PRESETS
-from codesign_mb.wifi.cell import generate_trace, record_trace
+from codesign_mb.wifi.cell import join_chunks, record_trace
 from codesign_mb.wifi.offline import offline_optimum
 from codesign_mb.wifi.offline_windows import Mapper, TraceSource, solve_windows
 from codesign_mb.wifi.sim import TRACE_CELLS_CAP, Trace, replay
@@ -88,8 +88,8 @@ def write_trace(
     ending in ``.parquet``) is written as it is recorded (:func:`~codesign_mb.wifi.cell.
     record_trace` into a :class:`~codesign_mb.wifi.trace_parquet.TraceWriter`, about
     :data:`CHUNK_STEPS` steps in memory at a time), so its length is bounded only by the
-    format's caps; a JSON instance is recorded whole (:func:`~codesign_mb.wifi.cell.
-    generate_trace`), so its size, robots x ticks, is capped
+    format's caps; a JSON instance is held whole (the same chunks joined,
+    :func:`~codesign_mb.wifi.cell.join_chunks`), so its size, robots x ticks, is capped
     (:data:`~codesign_mb.wifi.sim.TRACE_CELLS_CAP`) before anything runs.
     ``progress(done, total)`` counts the ticks recorded.
     """
@@ -132,14 +132,7 @@ def write_trace(
                 if progress is not None:
                     progress(chunk.first_tick + chunk.ul_bpss.shape[1], ticks)
         return RecordedTrace(out, robots, ticks, frames)
-    trace = generate_trace(
-        config,
-        robots,
-        steps=steps,
-        reliability=reliability,
-        latency_steps=latency_steps,
-        seed=seed,
-    )
+    trace = join_chunks(config, chunks)
     trace.save(out)
     if progress is not None:
         progress(ticks, ticks)

@@ -26,7 +26,7 @@ delivers, when that is less).
 
 from __future__ import annotations
 
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -48,6 +48,7 @@ __all__ = [
     "TraceChunk",
     "WifiLink",
     "generate_trace",
+    "join_chunks",
     "record_trace",
 ]
 
@@ -431,21 +432,25 @@ def generate_trace(
     """
     ticks = (steps + latency_steps) * config.traffic.period_ticks(config.mac.tick_us)
     check_range("robots x ticks of the trace", n_stations * ticks, cap=TRACE_CELLS_CAP)
-    chunks = list(
-        record_trace(
-            config,
-            n_stations,
-            steps=steps,
-            reliability=reliability,
-            latency_steps=latency_steps,
-            seed=seed,
-            chunk_steps=max(steps, 1),
-        )
+    chunks = record_trace(
+        config,
+        n_stations,
+        steps=steps,
+        reliability=reliability,
+        latency_steps=latency_steps,
+        seed=seed,
+        chunk_steps=max(steps, 1),
     )
+    return join_chunks(config, chunks)
+
+
+def join_chunks(config: WifiConfig, chunks: Iterable[TraceChunk]) -> Trace:
+    """The whole :class:`Trace` of :func:`record_trace`'s chunks, put end to end."""
+    parts = list(chunks)
     return Trace(
         config=config,
-        horizon_ticks=sum(c.ul_bpss.shape[1] for c in chunks),
-        ul_bpss=np.concatenate([c.ul_bpss for c in chunks], axis=1),
-        dl_bpss=np.concatenate([c.dl_bpss for c in chunks], axis=1),
-        frames=pd.concat([c.frames for c in chunks], ignore_index=True),
+        horizon_ticks=sum(c.ul_bpss.shape[1] for c in parts),
+        ul_bpss=np.concatenate([c.ul_bpss for c in parts], axis=1),
+        dl_bpss=np.concatenate([c.dl_bpss for c in parts], axis=1),
+        frames=pd.concat([c.frames for c in parts], ignore_index=True),
     )
