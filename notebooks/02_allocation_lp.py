@@ -52,7 +52,7 @@ import pandas as pd
 import codesign_mb
 from codesign_mb.studies.fig_wifi import CHANNEL_PRESETS, describe_channel
 from codesign_mb.studies.offline_hour import per_minute
-from codesign_mb.studies.offline_lp import COMPARED, solve_instance, write_trace
+from codesign_mb.studies.offline_lp import COMPARED, COMPARED_KEYS, solve_instance, write_trace
 from codesign_mb.wifi import generate_trace, offline_optimum, replay
 from codesign_mb.wifi.offline import airtime_prices
 from codesign_mb.wifi.phy import data_rate_mbps
@@ -311,7 +311,7 @@ plt.show()
 # %%
 RESULTS = Path(codesign_mb.__file__).resolve().parents[1] / "docs/results/offline_hour.json"
 HOUR = Path(os.environ.get("CODESIGN_HOUR_RESULTS", RESULTS))
-KEYS = [name.replace("-", "_") for name in COMPARED]
+KEYS = list(COMPARED_KEYS.values())
 live = None
 if SMOKE or not HOUR.is_file():
     with tempfile.TemporaryDirectory() as folder:

@@ -21,7 +21,7 @@ from codesign_mb.studies.offline_hour import (
     read_time_log,
     render_hour,
 )
-from codesign_mb.studies.offline_lp import COMPARED, solve_instance, write_trace
+from codesign_mb.studies.offline_lp import COMPARED, COMPARED_KEYS, solve_instance, write_trace
 from codesign_mb.wifi.offline import airtime_prices
 from codesign_mb.wifi.offline_windows import (
     PRICED,
@@ -33,7 +33,7 @@ from codesign_mb.wifi.sim import Trace, replay
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "docs" / "results" / "offline_hour.json"
-KEYS = [name.replace("-", "_") for name in COMPARED]
+KEYS = list(COMPARED_KEYS.values())
 
 
 @pytest.fixture(scope="module")

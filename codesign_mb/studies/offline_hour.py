@@ -25,8 +25,9 @@ from typing import Any
 
 import numpy as np
 import pandas as pd
+import psutil
 
-from codesign_mb.studies.offline_lp import COMPARED
+from codesign_mb.studies.offline_lp import COMPARED_KEYS
 
 __all__ = [
     "RUNS",
@@ -56,7 +57,7 @@ def per_minute(record: Mapping[str, Any], *, bin_ticks: int = MINUTE_TICKS) -> p
     w = pd.DataFrame(record["per_window"])
     w["minute"] = w["first_tick"] // bin_ticks
     w["ticks"] = w["end_tick"] - w["first_tick"]
-    allocators = [name.replace("-", "_") for name in COMPARED if name.replace("-", "_") in w]
+    allocators = [key for key in COMPARED_KEYS.values() if key in w]
     sums = w.groupby("minute")[
         ["ticks", "frames", "optimum", *allocators, "ul_price_sum", "dl_price_sum", "priced_ticks"]
     ].sum()
@@ -97,42 +98,33 @@ def sample_tree_rss(root: int, out: str | Path, *, steps: str | Path, every_s: f
     split between their processes: what the tree holds). ``step`` is the first word of the
     last line of ``steps``. The sampler leaves itself out (it may be one of the tree)."""
     with Path(out).open("a") as fh:
-        while Path(f"/proc/{root}").exists():
-            tree = [p for p in _tree(root) if p != os.getpid()]
-            rss = sum(_memory_kb(p, "Rss") for p in tree)
-            pss = sum(_memory_kb(p, "Pss") for p in tree)
+        while psutil.pid_exists(root):
+            rss, pss = _tree_memory_mb(root)
             lines = Path(steps).read_text().split("\n") if Path(steps).is_file() else []
             step = next((line.split()[0] for line in reversed(lines) if line.strip()), "?")
-            fh.write(f"{time.time():.1f},{step},{rss / 1024:.1f},{pss / 1024:.1f}\n")
+            fh.write(f"{time.time():.1f},{step},{rss:.1f},{pss:.1f}\n")
             fh.flush()
             time.sleep(every_s)
 
 
-def _tree(root: int) -> list[int]:
-    kids: dict[int, list[int]] = {}
-    for d in os.listdir("/proc"):
-        if d.isdigit():
-            try:
-                stat = Path(f"/proc/{d}/stat").read_text()
-            except OSError:
-                continue
-            kids.setdefault(int(stat.rsplit(")", 1)[1].split()[1]), []).append(int(d))
-    tree, todo = [], [root]
-    while todo:
-        p = todo.pop()
-        tree.append(p)
-        todo += kids.get(p, [])
-    return tree
-
-
-def _memory_kb(pid: int, field: str) -> int:
-    """``Rss`` or ``Pss`` of process ``pid`` in kB (0 once it is gone)."""
+def _tree_memory_mb(root: int) -> tuple[float, float]:
+    """RSS and PSS (MB) of ``root`` and its descendants, summed, this process left out; a
+    process gone (or not readable) meanwhile counts 0."""
     try:
-        text = Path(f"/proc/{pid}/smaps_rollup").read_text()
-    except OSError:
-        return 0
-    found = re.search(rf"^{field}:\s+(\d+) kB", text, re.MULTILINE)
-    return int(found.group(1)) if found else 0
+        parent = psutil.Process(root)
+        tree = [parent, *parent.children(recursive=True)]
+    except psutil.Error:
+        return 0.0, 0.0
+    rss = pss = 0
+    for proc in tree:
+        if proc.pid == os.getpid():
+            continue
+        try:
+            memory = proc.memory_full_info()
+        except psutil.Error:
+            continue
+        rss, pss = rss + memory.rss, pss + memory.pss
+    return rss / 2**20, pss / 2**20
 
 
 def _tree_peaks(folder: Path) -> dict[str, dict[str, float]]:
@@ -181,8 +173,7 @@ def hour_results(folder: str | Path) -> dict[str, Any]:
             "status",
         )
     }
-    for name in COMPARED:
-        key = name.replace("-", "_")
+    for key in COMPARED_KEYS.values():
         for suffix in ("frames", "gap", "solver_fallbacks"):
             totals[f"{key}_{suffix}"] = compare[f"{key}_{suffix}"]
     return {
@@ -228,9 +219,8 @@ def render_hour(results: Mapping[str, Any]) -> str:
         f"| `--compare`, windows from the journal | {runs['compare']['wall_s']:,.0f} s | "
         f"{runs['compare']['max_rss_mb']:,.0f} MB / {tree('compare')} | "
         + ", ".join(
-            f"{name} {t[name.replace('-', '_') + '_frames']:,} "
-            f"(gap {t[name.replace('-', '_') + '_gap']:.1%})"
-            for name in COMPARED
+            f"{name} {t[key + '_frames']:,} (gap {t[key + '_gap']:.1%})"
+            for name, key in COMPARED_KEYS.items()
         )
         + " |",
     ]

@@ -38,6 +38,7 @@ from codesign_mb.wifi.trace_parquet import STREAMED_TICKS_CAP, ParquetTrace, Tra
 __all__ = [
     "CHUNK_STEPS",
     "COMPARED",
+    "COMPARED_KEYS",
     "PER_WINDOW",
     "RecordedTrace",
     "solve_instance",
@@ -48,6 +49,8 @@ CHUNK_STEPS = 250
 """Control steps :func:`write_trace` records between writes (10 s; 48 robots: 10 MB of channel)."""
 COMPARED = ("greedy", "convex", "tick-optimal")
 """The online allocators ``codesign solve --compare`` replays on the trace."""
+COMPARED_KEYS: dict[str, str] = {name: name.replace("-", "_") for name in COMPARED}
+"""Allocator -> the prefix of its keys in a solve's record (``tick_optimal_frames``)."""
 PER_WINDOW = (
     "first_tick",
     "end_tick",
@@ -222,7 +225,7 @@ def solve_instance(
         tasks = [(source, name, firsts) for name in COMPARED]
         replays = dict(mapper(_replay, tasks))
         for i, name in enumerate(COMPARED):
-            key, replayed = name.replace("-", "_"), replays[i]
+            key, replayed = COMPARED_KEYS[name], replays[i]
             delivered = replayed["delivered"]
             record[f"{key}_frames"] = delivered
             record[f"{key}_solver_fallbacks"] = replayed["fallbacks"]

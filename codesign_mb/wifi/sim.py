@@ -307,13 +307,14 @@ def replay(
         engine.layouts = []
     order = trace.frames.sort_values(["capture_tick", "station"], kind="stable")
     columns = [order[c].to_numpy(dtype=np.int64).tolist() for c in Trace.COLUMNS]
+    captured = columns[Trace.COLUMNS.index("capture_tick")]
     frames: list[Frame] = []
     j = 0
     for lo in range(0, trace.horizon_ticks, REPLAY_CHUNK_TICKS):
         hi = min(lo + REPLAY_CHUNK_TICKS, trace.horizon_ticks)
         ul_bpss, dl_bpss = trace.channel(lo, hi)
         for k in range(lo, hi):
-            while j < len(order) and columns[2][j] <= k:
+            while j < len(order) and captured[j] <= k:
                 station, step, cap, dead, ul_bits, dl_bits, ul_ok, dl_ok = (c[j] for c in columns)
                 f = Frame(station, step, cap, dead, ul_bits, dl_bits, bool(ul_ok), bool(dl_ok))
                 engine.add(f)

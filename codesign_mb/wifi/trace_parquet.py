@@ -19,7 +19,6 @@ import contextlib
 import dataclasses
 import json
 import math
-from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
@@ -241,18 +240,14 @@ def save_parquet(
     path: str | Path,
     *,
     ticks_per_group: int = TICKS_PER_GROUP,
-    progress: Callable[[int, int], None] | None = None,
 ) -> None:
-    """Write ``trace`` as a Parquet trace; ``progress(done, total)`` per row group of ticks."""
-    total = math.ceil(trace.horizon_ticks / ticks_per_group)
+    """Write ``trace`` (held whole) as a Parquet trace, a row group of ticks at a time."""
     with TraceWriter(
         path, trace.config, trace.n_stations, trace.horizon_ticks, ticks_per_group=ticks_per_group
     ) as writer:
         writer.add_frames(trace.frames)
-        for g in range(total):
+        for g in range(math.ceil(trace.horizon_ticks / ticks_per_group)):
             writer.add_ticks(*trace.channel(g * ticks_per_group, (g + 1) * ticks_per_group))
-            if progress is not None:
-                progress(g + 1, total)
 
 
 class ParquetTrace:
